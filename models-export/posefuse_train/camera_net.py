@@ -1,0 +1,126 @@
+"""Camera network: SimpleBaseline (a ResNet backbone, three stride-2 deconvolutions, a 1x1 conv and
+a sigmoid) predicting K keypoint heatmaps at a quarter of the input resolution."""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from .config import CameraNetConfig
+from .keypoints import K
+
+
+class BasicBlock(nn.Module):
+    expansion = 1
+
+    def __init__(self, cin: int, width: int, stride: int):
+        super().__init__()
+        cout = width * self.expansion
+        self.conv1 = nn.Conv2d(cin, width, 3, stride, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(width)
+        self.conv2 = nn.Conv2d(width, cout, 3, 1, 1, bias=False)
+        self.bn2 = nn.BatchNorm2d(cout)
+        self.down = None
+        if stride != 1 or cin != cout:
+            self.down = nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
+
+    def forward(self, x):
+        y = torch.relu(self.bn1(self.conv1(x)))
+        y = self.bn2(self.conv2(y))
+        return torch.relu(y + (x if self.down is None else self.down(x)))
+
+
+class Bottleneck(nn.Module):
+    expansion = 4
+
+    def __init__(self, cin: int, width: int, stride: int):
+        super().__init__()
+        cout = width * self.expansion
+        self.conv1 = nn.Conv2d(cin, width, 1, bias=False)
+        self.bn1 = nn.BatchNorm2d(width)
+        self.conv2 = nn.Conv2d(width, width, 3, stride, 1, bias=False)
+        self.bn2 = nn.BatchNorm2d(width)
+        self.conv3 = nn.Conv2d(width, cout, 1, bias=False)
+        self.bn3 = nn.BatchNorm2d(cout)
+        self.down = None
+        if stride != 1 or cin != cout:
+            self.down = nn.Sequential(nn.Conv2d(cin, cout, 1, stride, bias=False), nn.BatchNorm2d(cout))
+
+    def forward(self, x):
+        y = torch.relu(self.bn1(self.conv1(x)))
+        y = torch.relu(self.bn2(self.conv2(y)))
+        y = self.bn3(self.conv3(y))
+        return torch.relu(y + (x if self.down is None else self.down(x)))
+
+
+# name -> (block, blocks per stage, base width)
+BACKBONES = {
+    "resnet50": (Bottleneck, (3, 4, 6, 3), 64),
+    "resnet18": (BasicBlock, (2, 2, 2, 2), 64),
+    "resnet18-w32": (BasicBlock, (2, 2, 2, 2), 32),
+    "resnet18-w16": (BasicBlock, (2, 2, 2, 2), 16),
+}
+
+
+class ResNet(nn.Module):
+    """Plain ResNet trunk (stride 32), no classifier."""
+
+    def __init__(self, name: str):
+        super().__init__()
+        block, depths, width = BACKBONES[name]
+        self.stem = nn.Sequential(
+            nn.Conv2d(3, width, 7, 2, 3, bias=False),
+            nn.BatchNorm2d(width),
+            nn.ReLU(inplace=True),
+            nn.MaxPool2d(3, 2, 1),
+        )
+        stages, cin = [], width
+        for i, n in enumerate(depths):
+            w = width * 2**i
+            blocks = []
+            for b in range(n):
+                blocks.append(block(cin, w, 2 if (b == 0 and i > 0) else 1))
+                cin = w * block.expansion
+            stages.append(nn.Sequential(*blocks))
+        self.stages = nn.Sequential(*stages)
+        self.out_channels = cin
+
+    def forward(self, x):
+        return self.stages(self.stem(x))
+
+
+class CameraNet(nn.Module):
+    def __init__(self, cfg: CameraNetConfig):
+        super().__init__()
+        self.cfg = cfg
+        self.backbone = ResNet(cfg.backbone)
+        layers, cin = [], self.backbone.out_channels
+        for _ in range(cfg.deconv_layers):
+            layers += [
+                nn.ConvTranspose2d(cin, cfg.deconv_channels, 4, 2, 1, bias=False),
+                nn.BatchNorm2d(cfg.deconv_channels),
+                nn.ReLU(inplace=True),
+            ]
+            cin = cfg.deconv_channels
+        self.deconv = nn.Sequential(*layers)
+        self.final = nn.Conv2d(cin, K, 1)
+        self._init()
+
+    def _init(self):
+        for m in self.modules():
+            if isinstance(m, nn.Conv2d):
+                nn.init.kaiming_normal_(m.weight, mode="fan_out", nonlinearity="relu")
+            elif isinstance(m, nn.ConvTranspose2d):
+                nn.init.normal_(m.weight, std=0.001)
+            elif isinstance(m, nn.BatchNorm2d):
+                nn.init.ones_(m.weight)
+                nn.init.zeros_(m.bias)
+        nn.init.normal_(self.final.weight, std=0.001)
+        # Targets are almost all zero: start the sigmoid near zero rather than at 0.5.
+        nn.init.constant_(self.final.bias, -4.0)
+
+    def logits(self, image: torch.Tensor) -> torch.Tensor:
+        return self.final(self.deconv(self.backbone(image)))
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        return torch.sigmoid(self.logits(image))

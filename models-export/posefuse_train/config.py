@@ -1,0 +1,62 @@
+"""Configurations as plain dataclasses.
+
+`PipelineConfig` mirrors src/pipeline/config.rs field for field: it is read from the training
+data's dataset.json and copied verbatim into the bundle manifest, so the server pre-processes
+exactly as the data was prepared.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass, field
+
+
+@dataclass
+class PipelineConfig:
+    image_size: int = 256
+    crop_scale: float = 1.2
+    mean: list[float] = field(default_factory=lambda: [0.485, 0.456, 0.406])
+    std: list[float] = field(default_factory=lambda: [0.229, 0.224, 0.225])
+    heatmap_size: int = 64
+    smoothing_kernel: int = 7
+    smoothing_sigma: float = 3.0
+    num_points: int = 256
+    box_margin: float = 0.15
+    rotate_by_heading: bool = True
+    lift_temperature: float = 2000.0
+    min_points: int = 8
+
+    @staticmethod
+    def with_image_size(image_size: int) -> PipelineConfig:
+        return PipelineConfig(image_size=image_size, heatmap_size=image_size // 4)
+
+    @staticmethod
+    def from_dict(d: dict) -> PipelineConfig:
+        names = {f.name for f in dataclasses.fields(PipelineConfig)}
+        unknown = set(d) - names
+        if unknown:
+            raise ValueError(f"unknown preprocessing keys: {sorted(unknown)}")
+        return PipelineConfig(**d)
+
+    def to_dict(self) -> dict:
+        d = dataclasses.asdict(self)
+        d["mean"] = [float(x) for x in d["mean"]]
+        d["std"] = [float(x) for x in d["std"]]
+        return d
+
+
+@dataclass
+class CameraNetConfig:
+    backbone: str = "resnet18-w16"  # see camera_net.BACKBONES
+    deconv_channels: int = 64
+    deconv_layers: int = 3
+
+
+@dataclass
+class PointNetConfig:
+    in_features: int = 3  # 3 (LiDAR-only) or 3 + K (fusion)
+    # Narrower than the paper's 64-64-128-256-1024 so that five networks train within the CPU budget.
+    local_channels: tuple[int, ...] = (32, 64)
+    global_channels: tuple[int, ...] = (128, 256)
+    head_channels: tuple[int, ...] = (256, 128)
+    seg_channels: tuple[int, ...] = (64,)

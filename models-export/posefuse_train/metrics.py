@@ -1,0 +1,150 @@
+"""Evaluation metrics, the Python copy of src/metrics/ (checked against tests/golden/metrics.json).
+
+A prediction of NaN is a missing keypoint: OKS 0, left out of MPJPE, fails PCK, costs the PEM clip.
+MPJPE, PCK and PEM pool every visible keypoint of every person; OKS/ACC counts persons; a person
+without a visible keypoint is skipped."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .keypoints import NAMES, OKS_SCALES, K
+
+THRESHOLDS = np.array([(50 + 5 * i) / 100.0 for i in range(10)])
+PCK_THRESHOLDS_3D_M = (0.1, 0.2)
+PEM_CLIP_M = 0.25
+
+
+def keypoint_oks(d, type_scale, box_scale):
+    s = np.asarray(type_scale, np.float64) * np.asarray(box_scale, np.float64)
+    return np.exp(-(np.asarray(d, np.float64) ** 2) / (2.0 * s * s))
+
+
+def box_scale_3d(box3d: np.ndarray) -> np.ndarray:
+    b = np.asarray(box3d, np.float64)
+    return np.cbrt(b[..., 3] * b[..., 4] * b[..., 5])
+
+
+def box_scale_2d(box2d: np.ndarray) -> np.ndarray:
+    b = np.asarray(box2d, np.float64)
+    return np.sqrt(b[..., 2] * b[..., 3])
+
+
+def oks_acc(oks: np.ndarray) -> float | None:
+    oks = np.asarray(oks, np.float64)
+    if oks.size == 0:
+        return None
+    return float(np.mean([(oks >= t).mean() for t in THRESHOLDS]))
+
+
+def evaluate_persons(pred, gt, visible, box_scale) -> dict:
+    """pred/gt [M,K,D], visible [M,K], box_scale [M] -> per-person arrays:
+    oks [M] (NaN: no visible keypoint), per_keypoint_oks [M,K] (NaN: invisible),
+    errors [M,K] (NaN: invisible or missing prediction), visible [M,K]."""
+    pred, gt = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
+    vis = np.asarray(visible).astype(bool)
+    missing = ~np.isfinite(pred).all(axis=2)
+    d = np.sqrt(((pred - gt) ** 2).sum(axis=2))
+    kp = keypoint_oks(d, np.array(OKS_SCALES)[None, :], np.asarray(box_scale, np.float64)[:, None])
+    kp = np.where(missing, 0.0, kp)
+    kp = np.where(vis, kp, np.nan)
+    errors = np.where(vis & ~missing, d, np.nan)
+    n = vis.sum(axis=1)
+    with np.errstate(invalid="ignore"):
+        oks = np.where(n > 0, np.nansum(np.where(vis, kp, 0.0), axis=1) / np.maximum(n, 1), np.nan)
+    return {"oks": oks, "per_keypoint_oks": kp, "errors": errors, "visible": vis}
+
+
+def _ratio(num, den):
+    return float(num / den) if den > 0 else None
+
+
+def summarize(e: dict, three_d: bool) -> dict:
+    scored = np.isfinite(e["oks"])
+    vis = e["visible"][scored]
+    kp = e["per_keypoint_oks"][scored]
+    err = e["errors"][scored]
+    oks = e["oks"][scored]
+    out = {
+        "count": int(scored.sum()),
+        "skipped": int((~scored).sum()),
+        "oks_acc": oks_acc(oks),
+        "mean_oks": _ratio(oks.sum(), len(oks)),
+        "mpjpe": _ratio(np.nansum(err), int(np.isfinite(err).sum())),
+        "per_keypoint_oks": [
+            {"name": NAMES[k], "oks": _ratio(np.nansum(kp[:, k]), int(vis[:, k].sum()))} for k in range(K)
+        ],
+    }
+    if three_d:
+        nvis = int(vis.sum())
+        hit = np.where(np.isfinite(err), err, np.inf)
+        for t in PCK_THRESHOLDS_3D_M:
+            out[f"pck_{int(round(t * 100))}cm"] = _ratio(((hit <= t) & vis).sum(), nvis)
+        out["pem"] = _ratio(np.where(vis, np.minimum(hit, PEM_CLIP_M), 0.0).sum(), nvis)
+    return out
+
+
+def report(e3: dict, e2: dict | None) -> dict:
+    """Same keys as the server's MetricsReport (src/metrics/accumulator.rs)."""
+    a = summarize(e3, True)
+    r = {
+        "count_3d": a["count"],
+        "skipped_3d": a["skipped"],
+        "oks_acc_3d": a["oks_acc"],
+        "mean_oks_3d": a["mean_oks"],
+        "mpjpe_3d_m": a["mpjpe"],
+        "pck_3d_10cm": a["pck_10cm"],
+        "pck_3d_20cm": a["pck_20cm"],
+        "pem_3d_m": a["pem"],
+        "per_keypoint_oks_3d": a["per_keypoint_oks"],
+    }
+    if e2 is not None:
+        b = summarize(e2, False)
+        r.update(
+            {
+                "count_2d": b["count"],
+                "skipped_2d": b["skipped"],
+                "oks_acc_2d": b["oks_acc"],
+                "mean_oks_2d": b["mean_oks"],
+                "mpjpe_2d_px": b["mpjpe"],
+                "per_keypoint_oks_2d": b["per_keypoint_oks"],
+            }
+        )
+    return r
+
+
+# --- geometry for OKS@2D ---------------------------------------------------------------------
+
+
+def local_to_vehicle(local: np.ndarray, box3d: np.ndarray, rotate_by_heading: bool) -> np.ndarray:
+    """Model-input coordinates [M,K,3] -> vehicle frame (inverse of: subtract centre, rotate by
+    -heading)."""
+    q = np.asarray(local, np.float64)
+    b = np.asarray(box3d, np.float64)
+    h = b[:, 6] if rotate_by_heading else np.zeros(len(b))
+    c, s = np.cos(h)[:, None], np.sin(h)[:, None]
+    x = b[:, None, 0] + c * q[..., 0] - s * q[..., 1]
+    y = b[:, None, 1] + s * q[..., 0] + c * q[..., 1]
+    z = b[:, None, 2] + q[..., 2]
+    return np.stack([x, y, z], axis=2)
+
+
+def project(vehicle: np.ndarray, intrinsic: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
+    """Waymo camera model: [M,K,3] vehicle points -> [M,K,2] pixels; NaN behind the camera."""
+    p = np.asarray(vehicle, np.float64)
+    ext = np.asarray(extrinsic, np.float64).reshape(-1, 4, 4)
+    r, t = ext[:, :3, :3], ext[:, :3, 3]
+    # camera->vehicle is [R|t]; vehicle->camera is R^T (p - t)
+    cam = np.einsum("mji,mkj->mki", r, p - t[:, None, :])
+    i = np.asarray(intrinsic, np.float64)
+    fu, fv, cu, cv, k1, k2, p1, p2, k3 = (i[:, j][:, None] for j in range(9))
+    x = cam[..., 0]
+    front = x > 1e-6
+    xs = np.where(front, x, 1.0)
+    un, vn = -cam[..., 1] / xs, -cam[..., 2] / xs
+    r2 = un * un + vn * vn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    ud = un * radial + 2.0 * p1 * un * vn + p2 * (r2 + 2.0 * un * un)
+    vd = vn * radial + p1 * (r2 + 2.0 * vn * vn) + 2.0 * p2 * un * vn
+    uv = np.stack([fu * ud + cu, fv * vd + cv], axis=2)
+    return np.where(front[..., None], uv, np.nan)

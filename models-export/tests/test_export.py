@@ -1,0 +1,102 @@
+import hashlib
+import json
+
+import numpy as np
+import onnx
+import onnxruntime as ort
+import pytest
+import torch
+
+from posefuse_train.config import CameraNetConfig, PipelineConfig, PointNetConfig
+from posefuse_train.export import ParityError, check_parity, export_bundle, export_onnx, untrained_models
+from posefuse_train.keypoints import NAMES, WAYMO_TYPES, K
+from posefuse_train.point_net import PointNet
+
+PREPROCESSING_KEYS = {
+    "image_size",
+    "crop_scale",
+    "mean",
+    "std",
+    "heatmap_size",
+    "smoothing_kernel",
+    "smoothing_sigma",
+    "num_points",
+    "box_margin",
+    "rotate_by_heading",
+    "lift_temperature",
+    "min_points",
+}
+
+
+def small_models(cfg):
+    torch.manual_seed(0)
+    cam, _, _ = untrained_models(cfg, CameraNetConfig(backbone="resnet18-w16", deconv_channels=16))
+    small = dict(local_channels=(16,), global_channels=(32,), head_channels=(32,), seg_channels=(16,))
+    return (
+        cam,
+        PointNet(PointNetConfig(in_features=3 + K, **small)),
+        PointNet(PointNetConfig(in_features=3, **small)),
+    )
+
+
+def test_bundle_manifest_hashes_shapes_and_runtime_parity(tmp_path):
+    cfg = PipelineConfig.with_image_size(32)
+    cfg.num_points = 64
+    manifest = export_bundle(tmp_path / "b", *small_models(cfg), cfg, trained=False)
+    on_disk = json.loads((tmp_path / "b" / "manifest.json").read_text())
+    assert on_disk == manifest
+    assert manifest["format_version"] == 1 and manifest["training"]["trained"] is False
+    assert manifest["keypoints"] == {"names": NAMES, "waymo_types": WAYMO_TYPES}
+    assert set(manifest["preprocessing"]) == PREPROCESSING_KEYS
+    assert (
+        manifest["preprocessing"]["lift_temperature"] == 2000.0
+        and manifest["preprocessing"]["heatmap_size"] == 8
+    )
+    want = {
+        "camera": ({"image": [-1, 3, 32, 32]}, {"heatmaps": [-1, K, 8, 8]}),
+        "point_fusion": ({"points": [-1, 64, 3 + K]}, {"keypoints": [-1, K, 3], "segmentation": [-1, 64, K]}),
+        "point_lidar": ({"points": [-1, 64, 3]}, {"keypoints": [-1, K, 3], "segmentation": [-1, 64, K]}),
+    }
+    for key, (inputs, outputs) in want.items():
+        m = manifest["models"][key]
+        path = tmp_path / "b" / m["file"]
+        assert m["inputs"] == inputs and m["outputs"] == outputs
+        assert m["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
+        model = onnx.load(str(path))
+        assert model.opset_import[0].version >= 17
+        sess = ort.InferenceSession(str(path), providers=["CPUExecutionProvider"])
+        assert [i.name for i in sess.get_inputs()] == list(inputs)
+        assert [o.name for o in sess.get_outputs()] == list(outputs)
+        # dynamic batch: a batch of 5 runs and gives 5 rows
+        shape = [5 if d == -1 else d for d in next(iter(inputs.values()))]
+        outs = sess.run(None, {next(iter(inputs)): np.zeros(shape, np.float32)})
+        assert all(o.shape[0] == 5 for o in outs)
+        assert manifest["training"]["config"]["onnx_parity_max_abs_diff"][key] <= 1e-4
+
+
+def test_a_model_that_disagrees_with_its_onnx_file_is_refused(tmp_path):
+    cfg = PipelineConfig.with_image_size(32)
+    _, _, lidar = small_models(cfg)
+    lidar.eval()
+    x = torch.randn(1, 64, 3)
+    export_onnx(lidar, x, tmp_path / "p.onnx", "points", ["keypoints", "segmentation"])
+    assert check_parity(lidar, tmp_path / "p.onnx", lambda b: torch.randn(b, 64, 3), 1e-4) <= 1e-4
+    with torch.no_grad():
+        lidar.head_out.bias += 0.01
+    with pytest.raises(ParityError):
+        check_parity(lidar, tmp_path / "p.onnx", lambda b: torch.randn(b, 64, 3), 1e-4)
+
+
+def test_cli_writes_an_untrained_bundle(tmp_path, capsys):
+    from posefuse_train.export import main
+
+    main(["--untrained", "--out", str(tmp_path / "u"), "--image-size", "32", "--backbone", "resnet18-w16"])
+    m = json.loads((tmp_path / "u" / "manifest.json").read_text())
+    assert m["preprocessing"]["image_size"] == 32 and m["models"]["camera"]["outputs"]["heatmaps"] == [
+        -1,
+        K,
+        8,
+        8,
+    ]
+    total = sum((tmp_path / "u" / v["file"]).stat().st_size for v in m["models"].values())
+    assert total < 30e6

@@ -1,0 +1,78 @@
+import json
+import math
+
+import numpy as np
+import pytest
+from conftest import GOLDEN
+
+from posefuse_train import metrics
+from posefuse_train.data import load
+from posefuse_train.evaluate import evaluate
+from posefuse_train.keypoints import OKS_SCALES, K
+
+
+def test_person_oks_averages_visible_keypoints_and_pools_errors():
+    s3 = 0.8
+    f = [1.0] * 4 + [2.0] * 2 + [100.0] * 7
+    pred = np.array([[[f[k] * OKS_SCALES[k] * s3, 0, 0] for k in range(K)]])
+    vis = np.array([[k < 6 for k in range(K)]])
+    e = metrics.evaluate_persons(pred, np.zeros((1, K, 3)), vis, np.array([s3]))
+    want = (4 * math.exp(-0.5) + 2 * math.exp(-2)) / 6
+    assert abs(e["oks"][0] - want) < 1e-12
+    assert np.isnan(e["per_keypoint_oks"][0, 6]) and np.isnan(e["errors"][0, 12])
+    r = metrics.report(e, None)
+    assert r["count_3d"] == 1 and abs(r["mean_oks_3d"] - want) < 1e-12
+    assert r["oks_acc_3d"] == pytest.approx(np.mean([want >= t for t in metrics.THRESHOLDS]))
+
+
+def test_missing_predictions_score_zero_and_cost_the_pem_clip():
+    gt = np.zeros((1, K, 3))
+    pred = np.zeros((1, K, 3))
+    pred[0, 0] = np.nan
+    e = metrics.evaluate_persons(pred, gt, np.ones((1, K), bool), np.array([1.0]))
+    assert e["per_keypoint_oks"][0, 0] == 0.0 and np.isnan(e["errors"][0, 0])
+    r = metrics.report(e, None)
+    assert r["pem_3d_m"] == pytest.approx(0.25 / K)
+    assert r["pck_3d_10cm"] == pytest.approx((K - 1) / K)
+    assert r["mpjpe_3d_m"] == 0.0
+
+
+def test_oks_acc_counts_thresholds_inclusively():
+    assert metrics.oks_acc(np.array([0.55])) == pytest.approx(0.2)
+    assert metrics.oks_acc(np.array([1.0, 0.0])) == pytest.approx(0.5)
+    assert metrics.oks_acc(np.array([])) is None
+
+
+def test_ground_truth_scores_perfectly_in_3d_and_after_projection(synthetic_sets):
+    d, cfg, _ = load(synthetic_sets[1])
+    r = evaluate(d["kp3d"], d, cfg)
+    assert r["oks_acc_3d"] == 1.0 and r["mpjpe_3d_m"] < 1e-6
+    # local -> vehicle -> image must land on the exact 2D projections
+    assert r["oks_acc_2d"] == 1.0 and r["mpjpe_2d_px"] < 1e-3
+    shifted = d["kp3d"] + np.array([0.1, 0.0, 0.0], np.float32)
+    r2 = evaluate(shifted, d, cfg)
+    assert r2["mpjpe_3d_m"] == pytest.approx(0.1, abs=1e-6) and r2["oks_acc_3d"] < 1.0
+
+
+def test_metrics_match_the_server_golden_cases():
+    path = GOLDEN / "metrics.json"
+    if not path.exists():
+        pytest.fail(f"{path} is missing: it is written from src/metrics and pins the Python copy")
+    g = json.loads(path.read_text())
+    assert g["cases"], "no golden cases"
+    for i, c in enumerate(g["cases"]):
+        pred = np.array([[np.nan if v is None else v for v in p] for p in c["pred"]], np.float64)[None]
+        gt = np.array(c["gt"], np.float64)[None]
+        vis = np.array(c["visible"], bool)[None]
+        e = metrics.evaluate_persons(pred, gt, vis, np.array([c["box_scale"]]))
+        if c["oks"] is None:
+            assert np.isnan(e["oks"][0]), i
+        else:
+            assert e["oks"][0] == pytest.approx(c["oks"], rel=1e-9, abs=1e-12), i
+        for k, want in enumerate(c["per_keypoint_oks"]):
+            got = e["per_keypoint_oks"][0, k]
+            assert np.isnan(got) if want is None else got == pytest.approx(want, rel=1e-9, abs=1e-12), (i, k)
+        err = e["errors"][0]
+        mp = float(np.nanmean(err)) if np.isfinite(err).any() else None
+        assert (mp is None) if c["mpjpe"] is None else mp == pytest.approx(c["mpjpe"], rel=1e-9, abs=1e-12), i
+    assert metrics.oks_acc(np.array(g["oks_acc"]["oks"])) == pytest.approx(g["oks_acc"]["value"], abs=1e-12)

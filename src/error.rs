@@ -1,0 +1,79 @@
+//! The one error type of posefuse. Transports map it to status codes in one place
+//! (`server::errors`); everything else only constructs it.
+
+use thiserror::Error;
+
+/// Every failure a request, a bundle or a command can meet.
+#[derive(Debug, Error)]
+pub enum Error {
+    /// The request body is not parseable (bad JSON syntax, wrong content type).
+    #[error("malformed request: {0}")]
+    Malformed(String),
+    /// A field is missing, has the wrong type or an unusable value.
+    #[error("invalid field `{field}`: {message}")]
+    InvalidField { field: String, message: String },
+    /// The request body is larger than the configured limit.
+    #[error("request body exceeds the limit of {limit} bytes")]
+    PayloadTooLarge { limit: usize },
+    /// The work queue is full; the client should retry later.
+    #[error("server overloaded: the request queue is full")]
+    Overloaded,
+    /// No such route or resource.
+    #[error("not found: {0}")]
+    NotFound(String),
+    /// The request did not finish within its deadline.
+    #[error("request timed out after {0} ms")]
+    Timeout(u64),
+    /// The server is not ready (bundle not loaded or warming up) or is shutting down.
+    #[error("not ready: {0}")]
+    Unavailable(String),
+    /// A model bundle is missing, inconsistent or does not match its manifest.
+    #[error("model bundle: {0}")]
+    Bundle(String),
+    /// ONNX Runtime failed.
+    #[error("runtime: {0}")]
+    Runtime(String),
+    /// File-system or other I/O at the edges.
+    #[error("io: {0}")]
+    Io(String),
+}
+
+impl Error {
+    /// Shorthand for an invalid-field error.
+    pub fn field(field: impl Into<String>, message: impl Into<String>) -> Self {
+        Error::InvalidField { field: field.into(), message: message.into() }
+    }
+
+    /// The offending field, for errors about one.
+    pub fn field_name(&self) -> Option<&str> {
+        match self {
+            Error::InvalidField { field, .. } => Some(field),
+            _ => None,
+        }
+    }
+
+    /// A stable, machine-readable code for the error (`{"error":{"code"}}`).
+    pub fn code(&self) -> &'static str {
+        match self {
+            Error::Malformed(_) => "malformed_request",
+            Error::InvalidField { .. } => "invalid_field",
+            Error::PayloadTooLarge { .. } => "payload_too_large",
+            Error::Overloaded => "overloaded",
+            Error::NotFound(_) => "not_found",
+            Error::Timeout(_) => "timeout",
+            Error::Unavailable(_) => "unavailable",
+            Error::Bundle(_) => "bundle_error",
+            Error::Runtime(_) => "runtime_error",
+            Error::Io(_) => "io_error",
+        }
+    }
+}
+
+impl From<std::io::Error> for Error {
+    fn from(e: std::io::Error) -> Self {
+        Error::Io(e.to_string())
+    }
+}
+
+/// Result with posefuse's error.
+pub type Result<T, E = Error> = std::result::Result<T, E>;

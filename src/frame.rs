@@ -1,0 +1,424 @@
+//! The frame model: what a perception stack sends for one camera frame, shared by the server,
+//! the simulator (request fixtures) and evaluation. Serde types plus validation that names the
+//! offending field.
+
+use base64::Engine;
+use serde::{Deserialize, Serialize};
+
+use crate::error::{Error, Result};
+use crate::keypoints::K;
+
+/// One frame: camera image, calibration, LiDAR points and the persons to estimate.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Frame {
+    /// Caller's identifier, echoed in the response.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame_id: Option<String>,
+    /// Camera image, base64 of a JPEG or PNG file. Absent: LiDAR-only.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image: Option<String>,
+    /// Calibration of the camera that took `image`.
+    pub calibration: CameraCalibration,
+    /// LiDAR points in the vehicle frame (x forward, y left, z up; metres).
+    pub points: Points,
+    /// Persons to estimate.
+    pub persons: Vec<Person>,
+    /// Requested mode; `auto` picks per person.
+    #[serde(default)]
+    pub mode: RequestedMode,
+}
+
+/// Waymo-style camera calibration.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct CameraCalibration {
+    /// `[f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3]`.
+    pub intrinsic: Vec<f64>,
+    /// 4×4 camera→vehicle transform, row-major (16 numbers).
+    pub extrinsic: Vec<f64>,
+    /// Image width in pixels.
+    pub width: u32,
+    /// Image height in pixels.
+    pub height: u32,
+}
+
+/// LiDAR points: a flat JSON array `[x0,y0,z0,x1,...]`, or `{"b64": ...}` with base64 of a
+/// little-endian f32 buffer of the same layout (the compact form perception stacks should send).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[serde(untagged)]
+pub enum Points {
+    /// Flat array of x, y, z triples.
+    Flat(Vec<f32>),
+    /// Base64 of little-endian f32 x, y, z triples.
+    Encoded {
+        /// The base64 text.
+        b64: String,
+    },
+}
+
+/// Which model path to run.
+#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash, utoipa::ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum RequestedMode {
+    /// Fusion when both modalities are usable, else the best available.
+    #[default]
+    Auto,
+    /// Camera heatmaps fused into the point network.
+    Fusion,
+    /// Point network on LiDAR points only.
+    Lidar,
+    /// Camera heatmaps lifted to 3D with the paper's eq. 1.
+    Camera,
+}
+
+/// One person to estimate.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Person {
+    /// Caller's identifier, echoed in the response.
+    pub id: String,
+    /// 2D box in image pixels. Absent: derived from the projected 3D box.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub box_2d: Option<Box2d>,
+    /// 3D box in the vehicle frame.
+    pub box_3d: Box3d,
+    /// Labels, for evaluation and fixtures; ignored by prediction.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub ground_truth: Option<GroundTruth>,
+}
+
+/// Axis-aligned 2D box: centre and size in pixels.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Box2d {
+    pub center_x: f64,
+    pub center_y: f64,
+    pub width: f64,
+    pub height: f64,
+}
+
+/// 3D box: centre (m, vehicle frame), size (length along heading, width, height) and yaw.
+#[derive(Debug, Clone, Copy, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Box3d {
+    pub center_x: f64,
+    pub center_y: f64,
+    pub center_z: f64,
+    pub length: f64,
+    pub width: f64,
+    pub height: f64,
+    /// Yaw about +z, radians.
+    pub heading: f64,
+}
+
+/// Ground-truth keypoints of a person.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct GroundTruth {
+    /// 3D keypoints in the vehicle frame (13, in the project's order).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub keypoints_3d: Option<Keypoints3d>,
+    /// 2D keypoints in image pixels (13, in the project's order).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub keypoints_2d: Option<Keypoints2d>,
+}
+
+/// 13 3D keypoints with visibility.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Keypoints3d {
+    pub xyz: Vec<[f64; 3]>,
+    pub visible: Vec<bool>,
+}
+
+/// 13 2D keypoints with visibility (false: occluded or not labelled).
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct Keypoints2d {
+    pub uv: Vec<[f64; 2]>,
+    pub visible: Vec<bool>,
+}
+
+impl Points {
+    /// The points as xyz triples, checked for length and finiteness.
+    pub fn decode(&self) -> Result<Vec<[f32; 3]>> {
+        let flat: Vec<f32> = match self {
+            Points::Flat(v) => v.clone(),
+            Points::Encoded { b64 } => {
+                let bytes = base64::engine::general_purpose::STANDARD
+                    .decode(b64.as_bytes())
+                    .map_err(|e| Error::field("points.b64", format!("not valid base64: {e}")))?;
+                if bytes.len() % 12 != 0 {
+                    return Err(Error::field(
+                        "points.b64",
+                        format!("{} bytes is not a whole number of f32 xyz triples (12 bytes each)", bytes.len()),
+                    ));
+                }
+                bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+            }
+        };
+        if flat.len() % 3 != 0 {
+            return Err(Error::field(
+                "points",
+                format!("{} numbers is not a multiple of 3 (x, y, z per point)", flat.len()),
+            ));
+        }
+        if let Some(i) = flat.iter().position(|v| !v.is_finite()) {
+            return Err(Error::field(format!("points[{}]", i / 3), "coordinate is NaN or infinite"));
+        }
+        Ok(flat.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect())
+    }
+
+    /// Encodes points in the compact base64 form.
+    pub fn encode(points: &[[f32; 3]]) -> Points {
+        let bytes: Vec<u8> = points.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
+        Points::Encoded { b64: base64::engine::general_purpose::STANDARD.encode(bytes) }
+    }
+}
+
+fn finite(field: &str, v: f64) -> Result<()> {
+    if v.is_finite() {
+        Ok(())
+    } else {
+        Err(Error::field(field, "is NaN or infinite"))
+    }
+}
+
+fn positive(field: &str, v: f64) -> Result<()> {
+    finite(field, v)?;
+    if v > 0.0 {
+        Ok(())
+    } else {
+        Err(Error::field(field, format!("must be positive, got {v}")))
+    }
+}
+
+impl CameraCalibration {
+    /// Checks shape and values; the rigid-transform check lives in `geometry::Camera`.
+    pub fn validate(&self) -> Result<()> {
+        if self.intrinsic.len() != 9 {
+            return Err(Error::field(
+                "calibration.intrinsic",
+                format!("needs 9 numbers [f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3], got {}", self.intrinsic.len()),
+            ));
+        }
+        if self.extrinsic.len() != 16 {
+            return Err(Error::field(
+                "calibration.extrinsic",
+                format!("needs 16 numbers (4x4 row-major), got {}", self.extrinsic.len()),
+            ));
+        }
+        for (i, v) in self.intrinsic.iter().enumerate() {
+            finite(&format!("calibration.intrinsic[{i}]"), *v)?;
+        }
+        for (i, v) in self.extrinsic.iter().enumerate() {
+            finite(&format!("calibration.extrinsic[{i}]"), *v)?;
+        }
+        positive("calibration.intrinsic[0] (f_u)", self.intrinsic[0])?;
+        positive("calibration.intrinsic[1] (f_v)", self.intrinsic[1])?;
+        if self.width == 0 || self.height == 0 {
+            return Err(Error::field(
+                "calibration.width/height",
+                format!("image size must be positive, got {}x{}", self.width, self.height),
+            ));
+        }
+        Ok(())
+    }
+}
+
+impl Box2d {
+    /// Checks the box is finite with positive size.
+    pub fn validate(&self, field: &str) -> Result<()> {
+        finite(&format!("{field}.center_x"), self.center_x)?;
+        finite(&format!("{field}.center_y"), self.center_y)?;
+        positive(&format!("{field}.width"), self.width)?;
+        positive(&format!("{field}.height"), self.height)
+    }
+}
+
+impl Box3d {
+    /// Checks the box is finite with positive size.
+    pub fn validate(&self, field: &str) -> Result<()> {
+        finite(&format!("{field}.center_x"), self.center_x)?;
+        finite(&format!("{field}.center_y"), self.center_y)?;
+        finite(&format!("{field}.center_z"), self.center_z)?;
+        finite(&format!("{field}.heading"), self.heading)?;
+        positive(&format!("{field}.length"), self.length)?;
+        positive(&format!("{field}.width"), self.width)?;
+        positive(&format!("{field}.height"), self.height)
+    }
+}
+
+impl GroundTruth {
+    /// Checks keypoint counts and finiteness.
+    pub fn validate(&self, field: &str) -> Result<()> {
+        if let Some(k3) = &self.keypoints_3d {
+            if k3.xyz.len() != K || k3.visible.len() != K {
+                return Err(Error::field(format!("{field}.keypoints_3d"), format!("needs {K} keypoints and {K} visibility flags")));
+            }
+            for (i, p) in k3.xyz.iter().enumerate() {
+                for v in p {
+                    finite(&format!("{field}.keypoints_3d.xyz[{i}]"), *v)?;
+                }
+            }
+        }
+        if let Some(k2) = &self.keypoints_2d {
+            if k2.uv.len() != K || k2.visible.len() != K {
+                return Err(Error::field(format!("{field}.keypoints_2d"), format!("needs {K} keypoints and {K} visibility flags")));
+            }
+            for (i, p) in k2.uv.iter().enumerate() {
+                for v in p {
+                    finite(&format!("{field}.keypoints_2d.uv[{i}]"), *v)?;
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+impl Frame {
+    /// Validates everything that can be checked without decoding the image or the points.
+    pub fn validate(&self) -> Result<()> {
+        self.calibration.validate()?;
+        if self.persons.is_empty() {
+            return Err(Error::field("persons", "at least one person is required"));
+        }
+        let mut ids = std::collections::HashSet::new();
+        for (i, p) in self.persons.iter().enumerate() {
+            let f = format!("persons[{i}]");
+            if !ids.insert(p.id.as_str()) {
+                return Err(Error::field(format!("{f}.id"), format!("duplicate person id `{}`", p.id)));
+            }
+            if let Some(b) = &p.box_2d {
+                b.validate(&format!("{f}.box_2d"))?;
+            }
+            p.box_3d.validate(&format!("{f}.box_3d"))?;
+            if let Some(gt) = &p.ground_truth {
+                gt.validate(&format!("{f}.ground_truth"))?;
+            }
+        }
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn calib() -> CameraCalibration {
+        let mut ext = vec![0.0; 16];
+        for i in 0..4 {
+            ext[i * 5] = 1.0;
+        }
+        CameraCalibration { intrinsic: vec![1000.0, 1000.0, 960.0, 640.0, 0.0, 0.0, 0.0, 0.0, 0.0], extrinsic: ext, width: 1920, height: 1280 }
+    }
+
+    fn frame() -> Frame {
+        Frame {
+            frame_id: None,
+            image: None,
+            calibration: calib(),
+            points: Points::Flat(vec![10.0, 0.0, 1.0]),
+            persons: vec![Person {
+                id: "p".into(),
+                box_2d: Some(Box2d { center_x: 960.0, center_y: 640.0, width: 50.0, height: 150.0 }),
+                box_3d: Box3d { center_x: 10.0, center_y: 0.0, center_z: 1.0, length: 0.6, width: 0.6, height: 1.8, heading: 0.0 },
+                ground_truth: None,
+            }],
+            mode: RequestedMode::Auto,
+        }
+    }
+
+    fn field_of(r: Result<()>) -> String {
+        match r {
+            Err(Error::InvalidField { field, .. }) => field,
+            other => panic!("expected an invalid-field error, got {other:?}"),
+        }
+    }
+
+    #[test]
+    fn both_point_encodings_decode_to_the_same_points() {
+        let pts = vec![[1.0f32, 2.0, 3.0], [-4.5, 0.25, 1e3]];
+        let flat = Points::Flat(pts.iter().flatten().copied().collect());
+        assert_eq!(flat.decode().unwrap(), pts);
+        assert_eq!(Points::encode(&pts).decode().unwrap(), pts);
+        let json = serde_json::to_string(&Points::encode(&pts)).unwrap();
+        let back: Points = serde_json::from_str(&json).unwrap();
+        assert_eq!(back.decode().unwrap(), pts);
+    }
+
+    #[test]
+    fn point_errors_name_the_problem() {
+        let e = Points::Flat(vec![1.0, 2.0]).decode().unwrap_err();
+        assert!(e.to_string().contains("multiple of 3"), "{e}");
+        let e = Points::Flat(vec![1.0, f32::NAN, 2.0, 0.0, 0.0, 0.0]).decode().unwrap_err();
+        assert!(matches!(&e, Error::InvalidField { field, .. } if field == "points[0]"), "{e}");
+        let e = Points::Encoded { b64: "AAAA".into() }.decode().unwrap_err();
+        assert!(e.to_string().contains("12 bytes"), "{e}");
+        let e = Points::Encoded { b64: "!!".into() }.decode().unwrap_err();
+        assert!(e.to_string().contains("base64"), "{e}");
+        let inf = Points::encode(&[[f32::INFINITY, 0.0, 0.0]]).decode().unwrap_err();
+        assert!(inf.to_string().contains("NaN or infinite"));
+    }
+
+    #[test]
+    fn valid_frame_passes_and_round_trips_json() {
+        let f = frame();
+        f.validate().unwrap();
+        let back: Frame = serde_json::from_str(&serde_json::to_string(&f).unwrap()).unwrap();
+        assert_eq!(back, f);
+    }
+
+    #[test]
+    fn each_validation_error_names_its_field() {
+        let mut f = frame();
+        f.calibration.intrinsic.pop();
+        assert_eq!(field_of(f.validate()), "calibration.intrinsic");
+        let mut f = frame();
+        f.calibration.extrinsic.push(0.0);
+        assert_eq!(field_of(f.validate()), "calibration.extrinsic");
+        let mut f = frame();
+        f.calibration.intrinsic[0] = 0.0;
+        assert_eq!(field_of(f.validate()), "calibration.intrinsic[0] (f_u)");
+        let mut f = frame();
+        f.calibration.intrinsic[3] = f64::NAN;
+        assert_eq!(field_of(f.validate()), "calibration.intrinsic[3]");
+        let mut f = frame();
+        f.calibration.width = 0;
+        assert_eq!(field_of(f.validate()), "calibration.width/height");
+        let mut f = frame();
+        f.persons.clear();
+        assert_eq!(field_of(f.validate()), "persons");
+        let mut f = frame();
+        f.persons[0].box_3d.height = -1.0;
+        assert_eq!(field_of(f.validate()), "persons[0].box_3d.height");
+        let mut f = frame();
+        f.persons[0].box_2d.as_mut().unwrap().width = 0.0;
+        assert_eq!(field_of(f.validate()), "persons[0].box_2d.width");
+        let mut f = frame();
+        f.persons[0].box_3d.center_x = f64::INFINITY;
+        assert_eq!(field_of(f.validate()), "persons[0].box_3d.center_x");
+        let mut f = frame();
+        f.persons.push(f.persons[0].clone());
+        assert_eq!(field_of(f.validate()), "persons[1].id");
+        let mut f = frame();
+        f.persons[0].ground_truth = Some(GroundTruth {
+            keypoints_3d: Some(Keypoints3d { xyz: vec![[0.0; 3]; 12], visible: vec![true; 12] }),
+            keypoints_2d: None,
+        });
+        assert_eq!(field_of(f.validate()), "persons[0].ground_truth.keypoints_3d");
+    }
+
+    #[test]
+    fn unknown_fields_and_modes_are_rejected_by_the_parser() {
+        let mut v = serde_json::to_value(frame()).unwrap();
+        v["mode"] = "fusion".into();
+        assert_eq!(serde_json::from_value::<Frame>(v.clone()).unwrap().mode, RequestedMode::Fusion);
+        v["mode"] = "telepathy".into();
+        assert!(serde_json::from_value::<Frame>(v.clone()).is_err());
+        v["mode"] = "auto".into();
+        v["extra"] = 1.into();
+        assert!(serde_json::from_value::<Frame>(v).is_err());
+    }
+}

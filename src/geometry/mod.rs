@@ -1,0 +1,7 @@
+//! Sensor geometry with Waymo's conventions: camera model with OpenCV distortion, 3D and 2D boxes.
+
+mod boxes;
+mod camera;
+
+pub use boxes::{box2d_contains, box2d_from_points, BoxFrame};
+pub use camera::{Camera, Projection};

@@ -1,0 +1,33 @@
+//! The `posefuse` command line: serve, predict, eval, simulate.
+
+use clap::{Parser, Subcommand};
+
+/// Multi-modal (camera + LiDAR) 3D pedestrian pose estimation.
+#[derive(Parser)]
+#[command(name = "posefuse", version, about)]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Serve HTTP and gRPC on one port from a model bundle.
+    Serve(posefuse::server::ServeArgs),
+    /// Run one frame JSON through the serving pipeline and print the response (no server).
+    Predict(posefuse::server::PredictArgs),
+    /// Run the serving pipeline over simulator fixtures and print metrics per mode.
+    Eval(posefuse::server::EvalArgs),
+    /// Render synthetic camera + LiDAR pedestrians: training shards, request fixtures, previews.
+    Simulate(posefuse::sim::SimulateArgs),
+}
+
+fn main() -> anyhow::Result<()> {
+    let cli = Cli::parse();
+    match cli.command {
+        Command::Serve(a) => posefuse::server::serve_command(a),
+        Command::Predict(a) => posefuse::server::predict_command(a),
+        Command::Eval(a) => posefuse::server::eval_command(a),
+        Command::Simulate(a) => posefuse::sim::simulate_command(a),
+    }
+}

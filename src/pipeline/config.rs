@@ -1,0 +1,79 @@
+//! Pre-processing parameters. They travel with the data: the simulator writes them next to the
+//! shards (`dataset.json`), the trainer copies them into the bundle's `manifest.json`
+//! (`preprocessing`), and the server reads them from there. Nothing here is hard-coded elsewhere.
+
+use serde::{Deserialize, Serialize};
+
+/// Every size, constant and switch of the pre-processing pipeline.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct PipelineConfig {
+    /// Side S of the square camera crop fed to the camera network.
+    pub image_size: u32,
+    /// The 2D box is grown by this factor (on its longer side) before it is made square.
+    pub crop_scale: f64,
+    /// Per-channel mean (RGB, on 0..1 values) subtracted before the camera network.
+    pub mean: [f32; 3],
+    /// Per-channel standard deviation (RGB, on 0..1 values).
+    pub std: [f32; 3],
+    /// Side of the camera network's heatmaps (S/4).
+    pub heatmap_size: u32,
+    /// Gaussian smoothing kernel side (odd) applied to heatmaps before sampling.
+    pub smoothing_kernel: u32,
+    /// Gaussian smoothing sigma, in heatmap cells.
+    pub smoothing_sigma: f32,
+    /// Points fed to the point network.
+    pub num_points: u32,
+    /// Metres added on every side of the 3D box when collecting its points.
+    pub box_margin: f64,
+    /// Rotate point coordinates by −heading so they are expressed in the box frame.
+    pub rotate_by_heading: bool,
+    /// Temperature T of eq. 1 (camera-only lifting and pseudo labels): α ∝ exp(−T·d²) with d the
+    /// 2D distance in model-input pixels divided by `image_size`, so T does not depend on S.
+    pub lift_temperature: f64,
+    /// Fewer in-box points than this: the person falls back to camera-only lifting.
+    pub min_points: u32,
+}
+
+impl Default for PipelineConfig {
+    fn default() -> Self {
+        PipelineConfig {
+            image_size: 256,
+            crop_scale: 1.2,
+            mean: [0.485, 0.456, 0.406],
+            std: [0.229, 0.224, 0.225],
+            heatmap_size: 64,
+            smoothing_kernel: 7,
+            smoothing_sigma: 3.0,
+            num_points: 256,
+            box_margin: 0.15,
+            rotate_by_heading: true,
+            lift_temperature: 2000.0,
+            min_points: 8,
+        }
+    }
+}
+
+impl PipelineConfig {
+    /// The default configuration at another crop size (heatmaps at a quarter of it).
+    pub fn with_image_size(image_size: u32) -> Self {
+        PipelineConfig { image_size, heatmap_size: image_size / 4, ..Self::default() }
+    }
+
+    /// Checks internal consistency (used when a bundle or a dataset is loaded).
+    pub fn validate(&self) -> Result<(), String> {
+        if self.image_size < 8 || self.heatmap_size == 0 || self.image_size % self.heatmap_size != 0 {
+            return Err(format!("image_size {} must be a multiple of heatmap_size {}", self.image_size, self.heatmap_size));
+        }
+        if self.smoothing_kernel % 2 == 0 {
+            return Err(format!("smoothing_kernel must be odd, got {}", self.smoothing_kernel));
+        }
+        if self.num_points == 0 || !(self.smoothing_sigma > 0.0) || self.std.iter().any(|s| !(*s > 0.0)) {
+            return Err("num_points, smoothing_sigma and std must be positive".into());
+        }
+        if !(self.crop_scale >= 1.0) || !(self.lift_temperature > 0.0) {
+            return Err("crop_scale must be >= 1 and lift_temperature > 0".into());
+        }
+        Ok(())
+    }
+}

@@ -1,0 +1,16 @@
+//! Pure pre- and post-processing: no I/O, no model. One implementation, used by the server on
+//! every request and by the simulator to write training data.
+
+mod config;
+mod crop;
+mod fusion;
+mod lift;
+mod points;
+mod prepare;
+
+pub use config::PipelineConfig;
+pub use crop::{crop_rgb, normalize, normalize_into, CropTransform};
+pub use fusion::{cell_index, fused_points, gaussian_kernel, lidar_points, sample_features, smooth_heatmaps};
+pub use lift::{decode_heatmaps, lift, reliability};
+pub use points::{from_local, gather_points, input_seed, point_input, select_indices, to_local, PersonPoints, PointInput};
+pub use prepare::{keypoints_to_pixels, keypoints_to_vehicle, prepare_person, PreparedPerson};

@@ -1,0 +1,205 @@
+//! Point input: the LiDAR points inside a person's 3D box, in model-input coordinates, with their
+//! projections into the crop, reduced to exactly N by a choice seeded from the points themselves.
+
+use rand::{seq::index, Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::{CropTransform, PipelineConfig};
+use crate::geometry::{BoxFrame, Camera};
+
+/// All points of one person (inside the box grown by `box_margin`).
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct PersonPoints {
+    /// Model-input coordinates (metres from the box centre, in the box frame when rotated).
+    pub local: Vec<[f32; 3]>,
+    /// The same points in the vehicle frame, as they arrived.
+    pub vehicle: Vec<[f32; 3]>,
+    /// Their projections in model-input pixels; NaN behind the camera or without a camera.
+    pub model_uv: Vec<[f32; 2]>,
+}
+
+impl PersonPoints {
+    pub fn len(&self) -> usize {
+        self.local.len()
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.local.is_empty()
+    }
+}
+
+/// Exactly N points for the point network, with their model-input pixels and which in-box point
+/// each row is.
+#[derive(Debug, Clone, PartialEq)]
+pub struct PointInput {
+    pub xyz: Vec<[f32; 3]>,
+    pub uv: Vec<[f32; 2]>,
+    pub indices: Vec<usize>,
+}
+
+/// Vehicle frame → model-input coordinates.
+pub fn to_local(b: &BoxFrame, p: [f64; 3], cfg: &PipelineConfig) -> [f64; 3] {
+    if cfg.rotate_by_heading {
+        b.to_local(p)
+    } else {
+        [p[0] - b.center[0], p[1] - b.center[1], p[2] - b.center[2]]
+    }
+}
+
+/// Model-input coordinates → vehicle frame.
+pub fn from_local(b: &BoxFrame, q: [f64; 3], cfg: &PipelineConfig) -> [f64; 3] {
+    if cfg.rotate_by_heading {
+        b.to_vehicle(q)
+    } else {
+        [q[0] + b.center[0], q[1] + b.center[1], q[2] + b.center[2]]
+    }
+}
+
+/// The points of `points` (vehicle frame) inside `b` grown by `cfg.box_margin`.
+pub fn gather_points(
+    points: &[[f32; 3]],
+    b: &BoxFrame,
+    camera: Option<&Camera>,
+    crop: Option<&CropTransform>,
+    cfg: &PipelineConfig,
+) -> PersonPoints {
+    let m = cfg.box_margin;
+    // An axis-aligned bound of the rotated box rejects most of a sweep with three compares.
+    let reach = ((b.size[0] / 2.0 + m).powi(2) + (b.size[1] / 2.0 + m).powi(2)).sqrt();
+    let lo = [b.center[0] - reach, b.center[1] - reach, b.center[2] - b.size[2] / 2.0 - m];
+    let hi = [b.center[0] + reach, b.center[1] + reach, b.center[2] + b.size[2] / 2.0 + m];
+    let mut out = PersonPoints::default();
+    for p in points {
+        let q = [p[0] as f64, p[1] as f64, p[2] as f64];
+        if (0..3).any(|a| q[a] < lo[a] || q[a] > hi[a]) || !b.contains(q, m) {
+            continue;
+        }
+        let l = to_local(b, q, cfg);
+        let uv = match (camera, crop) {
+            (Some(cam), Some(t)) => {
+                let pr = cam.project(q);
+                if pr.in_front {
+                    let mp = t.to_model(pr.uv);
+                    [mp[0] as f32, mp[1] as f32]
+                } else {
+                    [f32::NAN; 2]
+                }
+            }
+            _ => [f32::NAN; 2],
+        };
+        out.local.push([l[0] as f32, l[1] as f32, l[2] as f32]);
+        out.vehicle.push(*p);
+        out.model_uv.push(uv);
+    }
+    out
+}
+
+/// FNV-1a over the points' bytes: the same points always give the same selection.
+pub fn input_seed(points: &[[f32; 3]]) -> u64 {
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for b in points.iter().flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes())) {
+        h ^= b as u64;
+        h = h.wrapping_mul(0x0000_0100_0000_01b3);
+    }
+    h
+}
+
+/// `n` indices into `0..count`: a sorted sample without replacement when there are enough points,
+/// otherwise every point once and random repeats for the rest. Empty when `count` is 0.
+pub fn select_indices(count: usize, n: usize, seed: u64) -> Vec<usize> {
+    if count == 0 {
+        return Vec::new();
+    }
+    let mut rng = ChaCha8Rng::seed_from_u64(seed);
+    if count >= n {
+        let mut idx = index::sample(&mut rng, count, n).into_vec();
+        idx.sort_unstable();
+        idx
+    } else {
+        let mut idx: Vec<usize> = (0..count).collect();
+        idx.extend((count..n).map(|_| rng.random_range(0..count)));
+        idx
+    }
+}
+
+/// The network's N points for a person, or `None` when the box holds no points.
+pub fn point_input(pp: &PersonPoints, cfg: &PipelineConfig) -> Option<PointInput> {
+    if pp.is_empty() {
+        return None;
+    }
+    let indices = select_indices(pp.len(), cfg.num_points as usize, input_seed(&pp.vehicle));
+    Some(PointInput {
+        xyz: indices.iter().map(|&i| pp.local[i]).collect(),
+        uv: indices.iter().map(|&i| pp.model_uv[i]).collect(),
+        indices,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::Box3d;
+
+    fn person_box() -> BoxFrame {
+        BoxFrame::new(&Box3d {
+            center_x: 10.0,
+            center_y: 2.0,
+            center_z: 0.9,
+            length: 0.6,
+            width: 0.8,
+            height: 1.8,
+            heading: std::f64::consts::FRAC_PI_2,
+        })
+    }
+
+    #[test]
+    fn gathers_inside_the_rotated_box_only() {
+        let cfg = PipelineConfig::default();
+        let b = person_box();
+        // heading 90°: the box's length (0.6) runs along vehicle y, its width (0.8) along x.
+        let pts = [[10.35, 2.0, 0.9], [10.0, 2.4, 0.9], [10.0, 2.5, 0.9], [10.0, 2.0, 1.9], [10.0, 2.0, 1.96]];
+        let pp = gather_points(&pts, &b, None, None, &cfg);
+        assert_eq!(pp.vehicle, vec![pts[0], pts[1], pts[3]]);
+        // local: x along heading (vehicle +y), y to the left of it (vehicle −x)
+        let l = pp.local[0];
+        assert!((l[0] - 0.0).abs() < 1e-6 && (l[1] + 0.35).abs() < 1e-6 && l[2].abs() < 1e-6);
+        assert!(pp.model_uv.iter().all(|uv| uv[0].is_nan()));
+        let q = from_local(&b, [0.1, -0.35, 0.2], &cfg);
+        let back = to_local(&b, q, &cfg);
+        assert!((back[0] - 0.1).abs() < 1e-12 && (back[1] + 0.35).abs() < 1e-12 && (back[2] - 0.2).abs() < 1e-12);
+        let unrotated = PipelineConfig { rotate_by_heading: false, ..cfg };
+        let l = to_local(&b, [10.35, 2.0, 0.9], &unrotated);
+        assert!((l[0] - 0.35).abs() < 1e-12 && l[1].abs() < 1e-12 && l[2].abs() < 1e-12);
+    }
+
+    #[test]
+    fn selection_is_deterministic_exact_and_covers_small_sets() {
+        let a = select_indices(1000, 256, 7);
+        assert_eq!(a, select_indices(1000, 256, 7));
+        assert_ne!(a, select_indices(1000, 256, 8));
+        assert_eq!(a.len(), 256);
+        assert!(a.windows(2).all(|w| w[0] < w[1]) && *a.last().unwrap_or(&0) < 1000);
+        let b = select_indices(10, 256, 1);
+        assert_eq!(b.len(), 256);
+        assert_eq!(&b[..10], &(0..10).collect::<Vec<_>>()[..]);
+        assert!(b.iter().all(|&i| i < 10));
+        assert!(select_indices(0, 256, 1).is_empty());
+    }
+
+    #[test]
+    fn point_input_is_seeded_by_the_points() {
+        let cfg = PipelineConfig { num_points: 16, ..PipelineConfig::default() };
+        let b = person_box();
+        let pts: Vec<[f32; 3]> = (0..40).map(|i| [10.0, 2.0 + (i as f32 - 20.0) * 0.01, 0.2 + 0.03 * i as f32]).collect();
+        let pp = gather_points(&pts, &b, None, None, &cfg);
+        let a = point_input(&pp, &cfg).unwrap_or_else(|| panic!("points expected"));
+        assert_eq!(a.xyz.len(), 16);
+        let again = point_input(&pp, &cfg).unwrap_or_else(|| panic!("points expected"));
+        assert_eq!((&a.indices, &a.xyz), (&again.indices, &again.xyz));
+        for (row, &i) in a.indices.iter().enumerate() {
+            assert_eq!(a.xyz[row], pp.local[i]);
+        }
+        assert_ne!(input_seed(&pts), input_seed(&pts[1..]));
+        assert!(point_input(&PersonPoints::default(), &cfg).is_none());
+    }
+}

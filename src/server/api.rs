@@ -1,0 +1,149 @@
+//! Response types of the HTTP API (JSON) and of the CLI; the gRPC messages mirror them.
+
+use std::collections::BTreeMap;
+
+use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
+
+use crate::frame::Box2d;
+use crate::metrics::MetricsReport;
+
+/// The model path that produced a person's pose.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize, ToSchema)]
+#[serde(rename_all = "lowercase")]
+pub enum Mode {
+    /// Camera heatmaps fused into the point network.
+    Fusion,
+    /// Point network on LiDAR points only.
+    Lidar,
+    /// Camera heatmaps lifted onto the LiDAR points with the paper's eq. 1.
+    Camera,
+}
+
+impl Mode {
+    /// Lower-case name, as in JSON.
+    pub fn as_str(self) -> &'static str {
+        match self {
+            Mode::Fusion => "fusion",
+            Mode::Lidar => "lidar",
+            Mode::Camera => "camera",
+        }
+    }
+}
+
+/// Poses of every person of one frame.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct PoseResponse {
+    /// The request's `frame_id`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame_id: Option<String>,
+    /// The bundle that answered.
+    pub model: ModelRef,
+    /// One entry per requested person, in request order.
+    pub persons: Vec<PersonPose>,
+    /// Where the time went.
+    pub timings: Timings,
+}
+
+/// Bundle name and version (manifest `name`, `version`).
+#[derive(Debug, Clone, PartialEq, Eq, Serialize, Deserialize, ToSchema)]
+pub struct ModelRef {
+    pub name: String,
+    pub version: String,
+}
+
+/// One person's pose.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct PersonPose {
+    /// The request's person id.
+    pub id: String,
+    /// The model path that ran.
+    pub mode: Mode,
+    /// Why this mode ran.
+    pub mode_reason: String,
+    /// LiDAR points found inside the (margin-grown) 3D box.
+    pub num_points: usize,
+    /// The 2D box the camera crop was taken from (the request's, or the projected 3D box);
+    /// absent when the person is outside the camera view.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub box_2d: Option<Box2d>,
+    /// The 13 keypoints in the project's order.
+    pub keypoints: Vec<KeypointPose>,
+}
+
+/// One keypoint.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct KeypointPose {
+    /// Keypoint name (`nose`, `left_shoulder`, ...).
+    pub name: String,
+    /// Waymo Open Dataset `KeypointType` id.
+    pub waymo_type: u32,
+    /// Position in the vehicle frame, metres (x forward, y left, z up).
+    pub xyz: [f64; 3],
+    /// Position in the image, pixels; null when it is behind the camera.
+    pub uv: Option<[f64; 2]>,
+    /// Heatmap peak (0..1) when the camera ran; null for LiDAR-only poses.
+    pub score: Option<f32>,
+}
+
+/// Wall-clock time of each stage, milliseconds.
+#[derive(Debug, Clone, Default, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct Timings {
+    /// Image and points decoding.
+    pub decode_ms: f64,
+    /// Crops, point selection, heatmap smoothing and sampling, lifting.
+    pub preprocess_ms: f64,
+    /// Waiting in the inference queue (camera and point stages).
+    pub queue_ms: f64,
+    /// ONNX Runtime (camera and point stages; a batch's time counts fully for each member).
+    pub inference_ms: f64,
+    /// Whole request.
+    pub total_ms: f64,
+}
+
+/// `{"error": {...}}`, the body of every error response.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct ErrorBody {
+    pub error: ErrorDetail,
+}
+
+/// What went wrong.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct ErrorDetail {
+    /// Stable machine-readable code (`invalid_field`, `malformed_request`, `overloaded`, ...).
+    pub code: String,
+    /// Human-readable message naming the field when there is one.
+    pub message: String,
+    /// The offending field (JSON path), when there is one.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub field: Option<String>,
+}
+
+/// One result of a batch: a response or an error, never both.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct BatchItem {
+    /// Position of the frame in the batch (NDJSON: line number among non-empty lines), from 0.
+    pub index: usize,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub response: Option<PoseResponse>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub error: Option<ErrorDetail>,
+}
+
+/// Predictions and metrics over frames with ground truth.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct EvaluateResponse {
+    /// Per-frame results, in request order.
+    pub predictions: Vec<BatchItem>,
+    /// Metrics over all persons with ground truth (`all`) and per mode that ran.
+    pub metrics: BTreeMap<String, MetricsReport>,
+    /// Frames that failed (their persons are not scored).
+    pub failed_frames: usize,
+}
+
+/// `GET /healthz`, `GET /readyz`.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct HealthResponse {
+    /// `ok`, `ready` or `warming_up`.
+    pub status: String,
+}

@@ -1,0 +1,82 @@
+//! The one place where [`Error`] becomes an HTTP status, a gRPC status and the JSON error body.
+
+use axum::http::StatusCode;
+use axum::response::{IntoResponse, Response};
+
+use super::api::{ErrorBody, ErrorDetail};
+use crate::error::Error;
+
+/// HTTP status of an error.
+pub fn http_status(e: &Error) -> StatusCode {
+    match e {
+        Error::Malformed(_) => StatusCode::BAD_REQUEST,
+        Error::InvalidField { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+        Error::PayloadTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
+        Error::Overloaded => StatusCode::TOO_MANY_REQUESTS,
+        Error::NotFound(_) => StatusCode::NOT_FOUND,
+        Error::Timeout(_) => StatusCode::GATEWAY_TIMEOUT,
+        Error::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
+        Error::Bundle(_) | Error::Runtime(_) | Error::Io(_) => StatusCode::INTERNAL_SERVER_ERROR,
+    }
+}
+
+/// gRPC status code of an error.
+pub fn grpc_code(e: &Error) -> tonic::Code {
+    match e {
+        Error::Malformed(_) | Error::InvalidField { .. } => tonic::Code::InvalidArgument,
+        Error::PayloadTooLarge { .. } | Error::Overloaded => tonic::Code::ResourceExhausted,
+        Error::NotFound(_) => tonic::Code::NotFound,
+        Error::Timeout(_) => tonic::Code::DeadlineExceeded,
+        Error::Unavailable(_) => tonic::Code::Unavailable,
+        Error::Bundle(_) | Error::Runtime(_) | Error::Io(_) => tonic::Code::Internal,
+    }
+}
+
+/// gRPC status of an error (the message carries the field, as in the JSON body).
+pub fn grpc_status(e: &Error) -> tonic::Status {
+    tonic::Status::new(grpc_code(e), e.to_string())
+}
+
+/// The `error` object of the JSON body.
+pub fn detail(e: &Error) -> ErrorDetail {
+    ErrorDetail { code: e.code().to_string(), message: e.to_string(), field: e.field_name().map(str::to_string) }
+}
+
+impl IntoResponse for Error {
+    fn into_response(self) -> Response {
+        let status = http_status(&self);
+        if status.is_server_error() {
+            tracing::error!(code = self.code(), "{self}");
+        }
+        let mut resp = (status, axum::Json(ErrorBody { error: detail(&self) })).into_response();
+        if matches!(self, Error::Overloaded) {
+            resp.headers_mut().insert(axum::http::header::RETRY_AFTER, axum::http::HeaderValue::from_static("1"));
+        }
+        resp
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn every_class_maps_to_its_documented_codes() {
+        let cases = [
+            (Error::Malformed("x".into()), 400, tonic::Code::InvalidArgument),
+            (Error::field("persons[0].box_3d", "bad"), 422, tonic::Code::InvalidArgument),
+            (Error::PayloadTooLarge { limit: 1 }, 413, tonic::Code::ResourceExhausted),
+            (Error::Overloaded, 429, tonic::Code::ResourceExhausted),
+            (Error::Timeout(5), 504, tonic::Code::DeadlineExceeded),
+            (Error::Unavailable("warming up".into()), 503, tonic::Code::Unavailable),
+            (Error::Runtime("x".into()), 500, tonic::Code::Internal),
+        ];
+        for (e, http, grpc) in cases {
+            assert_eq!(http_status(&e).as_u16(), http, "{e}");
+            assert_eq!(grpc_code(&e), grpc, "{e}");
+        }
+        let d = detail(&Error::field("points", "empty"));
+        assert_eq!((d.code.as_str(), d.field.as_deref()), ("invalid_field", Some("points")));
+        assert!(d.message.contains("points"));
+    }
+}

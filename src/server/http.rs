@@ -1,0 +1,362 @@
+//! The HTTP API (axum): routes, the JSON extractor whose rejections use the error body, NDJSON
+//! streaming, health and metrics endpoints.
+
+use std::sync::atomic::Ordering;
+use std::time::Instant;
+
+use axum::body::{Body, Bytes};
+use axum::extract::{FromRequest, MatchedPath, Request, State};
+use axum::http::{header, HeaderMap, HeaderValue, StatusCode};
+use axum::middleware::Next;
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use futures::{Stream, StreamExt};
+use serde::de::DeserializeOwned;
+
+use super::api::{BatchItem, ErrorBody, EvaluateResponse, HealthResponse, PoseResponse};
+use super::errors;
+use super::eval::EvalAccumulator;
+use super::AppState;
+use crate::error::{Error, Result};
+use crate::frame::Frame;
+
+const NDJSON: &str = "application/x-ndjson";
+
+/// The HTTP routes (gRPC is steered away before reaching them).
+pub fn router(state: AppState) -> Router {
+    let limit = state.body_limit;
+    Router::new()
+        .route("/v1/poses", post(poses))
+        .route("/v1/poses:batch", post(batch))
+        .route("/v1/evaluate", post(evaluate))
+        .route("/healthz", get(healthz))
+        .route("/readyz", get(readyz))
+        .route("/v1/models", get(models))
+        .route("/metrics", get(metrics_text))
+        .route("/openapi.json", get(openapi))
+        .fallback(not_found)
+        .layer(axum::middleware::from_fn(count_requests))
+        .layer(axum::extract::DefaultBodyLimit::max(limit))
+        .with_state(state)
+}
+
+async fn count_requests(req: Request, next: Next) -> Response {
+    let route = req.extensions().get::<MatchedPath>().map_or_else(|| "unmatched".to_string(), |m| m.as_str().to_string());
+    let resp = next.run(req).await;
+    metrics::counter!("posefuse_http_requests_total", "route" => route, "status" => resp.status().as_u16().to_string())
+        .increment(1);
+    resp
+}
+
+async fn not_found(req: Request) -> Error {
+    Error::NotFound(format!("no route for {} {}", req.method(), req.uri().path()))
+}
+
+/// JSON body extractor: content type, size limit and parse errors all answer with the error body
+/// (413 over the limit, 400 for syntax, 422 naming the field for missing or mistyped fields).
+pub struct ApiJson<T>(pub T);
+
+impl<T: DeserializeOwned> FromRequest<AppState> for ApiJson<T> {
+    type Rejection = Error;
+
+    async fn from_request(req: Request, state: &AppState) -> Result<Self> {
+        check_json_content_type(req.headers())?;
+        let bytes = Bytes::from_request(req, state).await.map_err(|r| bytes_rejection(&r, state.body_limit))?;
+        parse_json(&bytes).map(ApiJson)
+    }
+}
+
+fn bytes_rejection(r: &axum::extract::rejection::BytesRejection, limit: usize) -> Error {
+    if r.status() == StatusCode::PAYLOAD_TOO_LARGE {
+        Error::PayloadTooLarge { limit }
+    } else {
+        Error::Malformed(format!("cannot read the request body: {}", r.body_text()))
+    }
+}
+
+fn check_json_content_type(headers: &HeaderMap) -> Result<()> {
+    match headers.get(header::CONTENT_TYPE).map(|v| v.to_str().unwrap_or("")) {
+        None => Ok(()),
+        Some(ct) if ct.starts_with("application/json") || ct.contains("+json") => Ok(()),
+        Some(ct) => Err(Error::Malformed(format!("Content-Type must be application/json, got `{ct}`"))),
+    }
+}
+
+/// Parses JSON, naming the field of a data error by its path (`persons[0].box_3d.height`).
+pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T> {
+    let mut de = serde_json::Deserializer::from_slice(bytes);
+    let value = serde_path_to_error::deserialize(&mut de).map_err(path_error)?;
+    de.end().map_err(|e| Error::Malformed(format!("invalid JSON: {e}")))?;
+    Ok(value)
+}
+
+/// A JSON value (one batch item) into a typed value, naming the field on error.
+pub fn from_value<T: DeserializeOwned>(v: serde_json::Value) -> Result<T> {
+    serde_path_to_error::deserialize(v).map_err(path_error)
+}
+
+fn path_error(e: serde_path_to_error::Error<serde_json::Error>) -> Error {
+    let path = e.path().to_string();
+    let inner = e.into_inner();
+    match inner.classify() {
+        serde_json::error::Category::Data => {
+            let field = if path == "." || path.is_empty() { "body".to_string() } else { path };
+            Error::field(field, inner.to_string())
+        }
+        _ => Error::Malformed(format!("invalid JSON: {inner}")),
+    }
+}
+
+/// Predicts one frame with the server's deadline and counts the outcome.
+async fn predict_one(state: &AppState, frame: Frame) -> Result<PoseResponse> {
+    let t0 = Instant::now();
+    let r = state.predictor.predict_within(frame, None, state.request_timeout).await;
+    super::metrics::frame_outcome(&r);
+    metrics::histogram!("posefuse_request_seconds").record(t0.elapsed().as_secs_f64());
+    r
+}
+
+fn item(index: usize, r: Result<PoseResponse>) -> BatchItem {
+    match r {
+        Ok(resp) => BatchItem { index, response: Some(resp), error: None },
+        Err(e) => BatchItem { index, response: None, error: Some(errors::detail(&e)) },
+    }
+}
+
+/// Estimate the poses of every person of one frame.
+#[utoipa::path(post, path = "/v1/poses", request_body = Frame, responses(
+    (status = 200, description = "Poses", body = PoseResponse),
+    (status = 400, description = "Malformed JSON", body = ErrorBody),
+    (status = 413, description = "Body over the limit", body = ErrorBody),
+    (status = 422, description = "Invalid field", body = ErrorBody),
+    (status = 429, description = "Queue full", body = ErrorBody),
+    (status = 503, description = "Warming up", body = ErrorBody),
+    (status = 504, description = "Deadline passed", body = ErrorBody),
+))]
+async fn poses(State(state): State<AppState>, ApiJson(frame): ApiJson<Frame>) -> Result<Json<PoseResponse>> {
+    predict_one(&state, frame).await.map(Json)
+}
+
+/// Several frames: a JSON array in and out, or NDJSON (`Content-Type: application/x-ndjson`)
+/// streamed in and out. Results keep the input order; a bad frame gives an error item.
+#[utoipa::path(post, path = "/v1/poses:batch", request_body = Vec<Frame>, responses(
+    (status = 200, description = "One item per frame, in order", body = Vec<BatchItem>),
+    (status = 400, description = "Malformed JSON", body = ErrorBody),
+    (status = 413, description = "Body over the limit", body = ErrorBody),
+))]
+async fn batch(State(state): State<AppState>, req: Request) -> Response {
+    let is_ndjson = req
+        .headers()
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|ct| ct.starts_with(NDJSON) || ct.starts_with("application/jsonl"));
+    if is_ndjson {
+        return ndjson_batch(state, req.into_body());
+    }
+    let values: Vec<serde_json::Value> = match ApiJson::from_request(req, &state).await {
+        Ok(ApiJson(v)) => v,
+        Err(e) => return e.into_response(),
+    };
+    let concurrency = state.batch_concurrency;
+    let items: Vec<BatchItem> = futures::stream::iter(values.into_iter().enumerate())
+        .map(|(i, v)| {
+            let state = state.clone();
+            async move {
+                let r = match from_value::<Frame>(v) {
+                    Ok(frame) => predict_one(&state, frame).await,
+                    Err(e) => Err(e),
+                };
+                item(i, r)
+            }
+        })
+        .buffered(concurrency)
+        .collect()
+        .await;
+    Json(items).into_response()
+}
+
+fn ndjson_batch(state: AppState, body: Body) -> Response {
+    let limit = state.body_limit;
+    let concurrency = state.batch_concurrency;
+    let lines = ndjson_lines(body.into_data_stream(), limit);
+    let out = lines
+        .enumerate()
+        .map(move |(i, line)| {
+            let state = state.clone();
+            async move {
+                let r = match line.and_then(|l| parse_json::<Frame>(&l)) {
+                    Ok(frame) => predict_one(&state, frame).await,
+                    Err(e) => Err(e),
+                };
+                item(i, r)
+            }
+        })
+        .buffered(concurrency)
+        .map(|it| {
+            let mut line = serde_json::to_vec(&it).unwrap_or_else(|e| {
+                format!(r#"{{"index":{},"error":{{"code":"runtime_error","message":"{e}"}}}}"#, it.index).into_bytes()
+            });
+            line.push(b'\n');
+            Ok::<_, std::convert::Infallible>(Bytes::from(line))
+        });
+    let mut resp = Response::new(Body::from_stream(out));
+    resp.headers_mut().insert(header::CONTENT_TYPE, HeaderValue::from_static(NDJSON));
+    resp
+}
+
+/// Splits a byte stream into non-blank lines; a line over `limit` bytes becomes an error item and
+/// is skipped.
+fn ndjson_lines<S>(stream: S, limit: usize) -> impl Stream<Item = Result<Vec<u8>>> + Send
+where
+    S: Stream<Item = std::result::Result<Bytes, axum::Error>> + Send + Unpin + 'static,
+{
+    struct Reader<S> {
+        stream: S,
+        buf: Vec<u8>,
+        eof: bool,
+        skipping: bool,
+    }
+    let reader = Reader { stream, buf: Vec::new(), eof: false, skipping: false };
+    futures::stream::unfold(reader, move |mut r| async move {
+        loop {
+            if let Some(pos) = r.buf.iter().position(|b| *b == b'\n') {
+                let mut line: Vec<u8> = r.buf.drain(..=pos).collect();
+                line.pop();
+                if line.iter().all(u8::is_ascii_whitespace) {
+                    continue;
+                }
+                return Some((Ok(line), r));
+            }
+            if r.buf.len() > limit {
+                r.buf.clear();
+                r.skipping = true;
+                return Some((Err(Error::PayloadTooLarge { limit }), r));
+            }
+            if r.eof {
+                if r.buf.iter().all(u8::is_ascii_whitespace) {
+                    return None;
+                }
+                return Some((Ok(std::mem::take(&mut r.buf)), r));
+            }
+            match r.stream.next().await {
+                Some(Ok(chunk)) => {
+                    if r.skipping {
+                        if let Some(pos) = chunk.iter().position(|b| *b == b'\n') {
+                            r.skipping = false;
+                            r.buf.extend_from_slice(&chunk[pos + 1..]);
+                        }
+                    } else {
+                        r.buf.extend_from_slice(&chunk);
+                    }
+                }
+                Some(Err(e)) => {
+                    r.eof = true;
+                    r.buf.clear();
+                    return Some((Err(Error::Malformed(format!("cannot read the request body: {e}"))), r));
+                }
+                None => r.eof = true,
+            }
+        }
+    })
+}
+
+/// Predict frames that carry ground truth and score them (OKS/ACC 3D, MPJPE, PCK, PEM, OKS@2D,
+/// per-keypoint OKS), overall and per mode.
+#[utoipa::path(post, path = "/v1/evaluate", request_body = Vec<Frame>, responses(
+    (status = 200, description = "Predictions and metrics", body = EvaluateResponse),
+    (status = 400, description = "Malformed JSON", body = ErrorBody),
+    (status = 413, description = "Body over the limit", body = ErrorBody),
+))]
+async fn evaluate(
+    State(state): State<AppState>,
+    ApiJson(values): ApiJson<Vec<serde_json::Value>>,
+) -> Result<Json<EvaluateResponse>> {
+    let concurrency = state.batch_concurrency;
+    let results: Vec<(Option<Frame>, BatchItem)> = futures::stream::iter(values.into_iter().enumerate())
+        .map(|(i, v)| {
+            let state = state.clone();
+            async move {
+                match from_value::<Frame>(v) {
+                    Ok(frame) => {
+                        let r = predict_one(&state, frame.clone()).await;
+                        (Some(frame), item(i, r))
+                    }
+                    Err(e) => (None, item(i, Err(e))),
+                }
+            }
+        })
+        .buffered(concurrency)
+        .collect()
+        .await;
+    let mut acc = EvalAccumulator::default();
+    let mut failed = 0;
+    for (frame, it) in &results {
+        match (frame, &it.response) {
+            (Some(f), Some(resp)) => acc.add(f, resp)?,
+            _ => failed += 1,
+        }
+    }
+    Ok(Json(EvaluateResponse {
+        predictions: results.into_iter().map(|(_, it)| it).collect(),
+        metrics: acc.reports(),
+        failed_frames: failed,
+    }))
+}
+
+/// Liveness: the process answers.
+#[utoipa::path(get, path = "/healthz", responses((status = 200, body = HealthResponse)))]
+async fn healthz() -> Json<HealthResponse> {
+    Json(HealthResponse { status: "ok".into() })
+}
+
+/// Readiness: models loaded and warmed up, not shutting down.
+#[utoipa::path(get, path = "/readyz", responses(
+    (status = 200, body = HealthResponse), (status = 503, body = HealthResponse)))]
+async fn readyz(State(state): State<AppState>) -> (StatusCode, Json<HealthResponse>) {
+    let status = if state.shutting_down.load(Ordering::SeqCst) {
+        "shutting_down"
+    } else if state.predictor.runtime().is_ready() {
+        "ready"
+    } else {
+        "warming_up"
+    };
+    let code = if status == "ready" { StatusCode::OK } else { StatusCode::SERVICE_UNAVAILABLE };
+    (code, Json(HealthResponse { status: status.into() }))
+}
+
+/// The loaded bundle's manifest.
+#[utoipa::path(get, path = "/v1/models", responses((status = 200, description = "manifest.json", body = Object)))]
+async fn models(State(state): State<AppState>) -> Json<serde_json::Value> {
+    Json(state.predictor.bundle().raw.clone())
+}
+
+/// Prometheus metrics.
+#[utoipa::path(get, path = "/metrics", responses((status = 200, description = "Prometheus text format", body = String)))]
+async fn metrics_text(State(state): State<AppState>) -> Response {
+    match &state.prometheus {
+        Some(h) => {
+            h.run_upkeep();
+            ([(header::CONTENT_TYPE, "text/plain; version=0.0.4")], h.render()).into_response()
+        }
+        None => Error::Unavailable("metrics recorder not installed".into()).into_response(),
+    }
+}
+
+#[derive(utoipa::OpenApi)]
+#[openapi(
+    info(title = "posefuse", description = "Multi-modal (camera + LiDAR) 3D pedestrian pose estimation"),
+    paths(poses, batch, evaluate, healthz, readyz, models, metrics_text, openapi)
+)]
+struct ApiDoc;
+
+/// The OpenAPI document of this API.
+pub fn openapi_doc() -> utoipa::openapi::OpenApi {
+    <ApiDoc as utoipa::OpenApi>::openapi()
+}
+
+/// OpenAPI 3 description of this API.
+#[utoipa::path(get, path = "/openapi.json", responses((status = 200, description = "OpenAPI document")))]
+async fn openapi() -> Json<utoipa::openapi::OpenApi> {
+    Json(openapi_doc())
+}

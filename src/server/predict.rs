@@ -1,0 +1,409 @@
+//! Frame → poses: the one path shared by HTTP, gRPC, `posefuse predict` and `posefuse eval`.
+//! Pre-processing is exactly the pipeline's (`prepare_person`, `crop_rgb`, `normalize`,
+//! `smooth_heatmaps`, `sample_features`, `fused_points`, `decode_heatmaps`, `lift`,
+//! `keypoints_to_vehicle`, `keypoints_to_pixels`); this file only decides the mode and moves data.
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use base64::Engine;
+use image::RgbImage;
+
+use super::api::{KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, Timings};
+use crate::error::{Error, Result};
+use crate::frame::{Box2d, Box3d, Frame, RequestedMode};
+use crate::geometry::{box2d_from_points, BoxFrame, Camera};
+use crate::keypoints::{K, NAMES, WAYMO_TYPES};
+use crate::pipeline::{
+    crop_rgb, decode_heatmaps, fused_points, keypoints_to_pixels, keypoints_to_vehicle, lidar_points, lift,
+    normalize, prepare_person, sample_features, smooth_heatmaps, PipelineConfig, PointInput,
+};
+use crate::runtime::{Bundle, JobOutput, ModelKind, Runtime};
+
+/// Runs frames through the pipeline and the runtime.
+#[derive(Clone)]
+pub struct Predictor {
+    runtime: Arc<Runtime>,
+}
+
+/// The camera image of a frame after decoding.
+enum ImageState {
+    Absent,
+    Undecodable(String),
+    Decoded(RgbImage),
+}
+
+/// Everything decided before inference for one person.
+struct PersonPlan {
+    id: String,
+    mode: Mode,
+    reason: String,
+    box_frame: BoxFrame,
+    box_2d: Option<Box2d>,
+    num_points: usize,
+    input: PointInput,
+    /// Normalized crop `[3, S, S]` when the camera network runs.
+    image_input: Option<Vec<f32>>,
+}
+
+struct FramePlan {
+    camera: Camera,
+    persons: Vec<PersonPlan>,
+    decode: Duration,
+    preprocess: Duration,
+}
+
+#[derive(Default)]
+struct PersonTimes {
+    queue: Duration,
+    inference: Duration,
+    preprocess: Duration,
+}
+
+impl PersonTimes {
+    fn add(&mut self, out: &JobOutput) {
+        self.queue += out.queue;
+        self.inference += out.inference;
+    }
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+impl Predictor {
+    /// A predictor over a started runtime.
+    pub fn new(runtime: Arc<Runtime>) -> Predictor {
+        Predictor { runtime }
+    }
+
+    /// The bundle the runtime serves.
+    pub fn bundle(&self) -> &Bundle {
+        self.runtime.bundle()
+    }
+
+    /// The runtime (readiness, pausing).
+    pub fn runtime(&self) -> &Arc<Runtime> {
+        &self.runtime
+    }
+
+    /// Poses for every person of `frame`. `raw_image` (JPEG/PNG bytes, as gRPC sends them)
+    /// replaces `frame.image` (base64) when given.
+    pub async fn predict(&self, frame: Frame, raw_image: Option<Vec<u8>>) -> Result<PoseResponse> {
+        let started = Instant::now();
+        if !self.runtime.is_ready() {
+            return Err(Error::Unavailable("the models are warming up".into()));
+        }
+        let bundle = self.runtime.bundle().clone();
+        // Decoding and cropping are CPU work; keep them off the async executor.
+        let plan = tokio::task::spawn_blocking(move || {
+            let cfg = bundle.config();
+            plan_frame(&frame, raw_image, cfg).map(|p| (p, frame.frame_id))
+        })
+        .await
+        .map_err(|e| Error::Runtime(format!("pre-processing task failed: {e}")))?;
+        let (plan, frame_id) = plan?;
+        let camera = &plan.camera;
+        let results = futures::future::try_join_all(plan.persons.into_iter().map(|p| self.run_person(p, camera))).await?;
+        let mut timings =
+            Timings { decode_ms: ms(plan.decode), preprocess_ms: ms(plan.preprocess), ..Timings::default() };
+        let mut persons = Vec::with_capacity(results.len());
+        let (mut queue, mut inference, mut post) = (Duration::ZERO, Duration::ZERO, Duration::ZERO);
+        for (pose, t) in results {
+            // Persons run concurrently: the slowest one is the request's time.
+            queue = queue.max(t.queue);
+            inference = inference.max(t.inference);
+            post = post.max(t.preprocess);
+            metrics::counter!("posefuse_persons_total", "mode" => pose.mode.as_str()).increment(1);
+            persons.push(pose);
+        }
+        timings.queue_ms = ms(queue);
+        timings.inference_ms = ms(inference);
+        timings.preprocess_ms += ms(post);
+        timings.total_ms = ms(started.elapsed());
+        metrics::histogram!("posefuse_preprocess_seconds").record(plan.preprocess.as_secs_f64() + post.as_secs_f64());
+        metrics::histogram!("posefuse_decode_seconds").record(plan.decode.as_secs_f64());
+        let m = &self.runtime.bundle().manifest;
+        Ok(PoseResponse {
+            frame_id,
+            model: ModelRef { name: m.name.clone(), version: m.version.clone() },
+            persons,
+            timings,
+        })
+    }
+
+    /// [`Predictor::predict`] with a deadline.
+    pub async fn predict_within(
+        &self,
+        frame: Frame,
+        raw_image: Option<Vec<u8>>,
+        timeout: Duration,
+    ) -> Result<PoseResponse> {
+        match tokio::time::timeout(timeout, self.predict(frame, raw_image)).await {
+            Ok(r) => r,
+            Err(_) => Err(Error::Timeout(timeout.as_millis() as u64)),
+        }
+    }
+
+    async fn run_person(&self, p: PersonPlan, camera: &Camera) -> Result<(PersonPose, PersonTimes)> {
+        let cfg = self.runtime.bundle().config();
+        let (s, hm) = (cfg.image_size, cfg.heatmap_size as usize);
+        let mut times = PersonTimes::default();
+        let heatmaps = match p.image_input {
+            Some(x) => {
+                let out = self.runtime.infer(ModelKind::Camera, x).await?;
+                times.add(&out);
+                Some(out.data)
+            }
+            None => None,
+        };
+        let need_heatmaps = || Error::Runtime(format!("{}: camera heatmaps missing", p.id));
+        let (local, scores): (Vec<[f32; 3]>, Option<Vec<f32>>) = match p.mode {
+            Mode::Fusion => {
+                let h = heatmaps.as_deref().ok_or_else(need_heatmaps)?;
+                let t0 = Instant::now();
+                let smoothed = smooth_heatmaps(h, K, hm, hm, cfg);
+                let features = sample_features(&smoothed, K, hm, hm, &p.input.uv, s);
+                let fused = fused_points(&p.input.xyz, &features, K);
+                let scores = decode_heatmaps(h, K, hm, hm, s).into_iter().map(|(_, v)| v).collect();
+                times.preprocess += t0.elapsed();
+                let out = self.runtime.infer(ModelKind::PointFusion, fused).await?;
+                times.add(&out);
+                (triples(&out.data), Some(scores))
+            }
+            Mode::Lidar => {
+                let out = self.runtime.infer(ModelKind::PointLidar, lidar_points(&p.input.xyz)).await?;
+                times.add(&out);
+                (triples(&out.data), None)
+            }
+            Mode::Camera => {
+                let h = heatmaps.as_deref().ok_or_else(need_heatmaps)?;
+                let t0 = Instant::now();
+                let decoded = decode_heatmaps(h, K, hm, hm, s);
+                let kp_uv: Vec<[f32; 2]> = decoded.iter().map(|d| d.0).collect();
+                let lifted = lift(&kp_uv, &p.input.uv, &p.input.xyz, s, cfg.lift_temperature);
+                times.preprocess += t0.elapsed();
+                (lifted, Some(decoded.into_iter().map(|d| d.1).collect()))
+            }
+        };
+        if let Some(k) = local.iter().position(|q| q.iter().any(|v| !v.is_finite())) {
+            return Err(Error::Runtime(format!("{}: keypoint {} is not finite", p.id, NAMES[k])));
+        }
+        let vehicle = keypoints_to_vehicle(&local, &p.box_frame, cfg);
+        let pixels = keypoints_to_pixels(&vehicle, camera);
+        let keypoints = (0..K)
+            .map(|k| KeypointPose {
+                name: NAMES[k].to_string(),
+                waymo_type: WAYMO_TYPES[k],
+                xyz: vehicle[k],
+                uv: pixels[k],
+                score: scores.as_ref().map(|s| s[k]),
+            })
+            .collect();
+        let pose = PersonPose {
+            id: p.id,
+            mode: p.mode,
+            mode_reason: p.reason,
+            num_points: p.num_points,
+            box_2d: p.box_2d,
+            keypoints,
+        };
+        Ok((pose, times))
+    }
+}
+
+fn triples(v: &[f32]) -> Vec<[f32; 3]> {
+    v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
+}
+
+/// Whether a 2D box overlaps the image at all.
+fn overlaps_image(b: &Box2d, width: u32, height: u32) -> bool {
+    let (x0, x1) = (b.center_x - b.width / 2.0, b.center_x + b.width / 2.0);
+    let (y0, y1) = (b.center_y - b.height / 2.0, b.center_y + b.height / 2.0);
+    x1 > 0.0 && y1 > 0.0 && x0 < width as f64 && y0 < height as f64
+}
+
+/// The 2D box of the projected 3D box corners, when the whole box is in front of the camera and
+/// overlaps the image.
+pub fn projected_box(camera: &Camera, b: &Box3d) -> Option<Box2d> {
+    let mut uv = Vec::with_capacity(8);
+    for c in BoxFrame::new(b).corners() {
+        let p = camera.project(c);
+        if !p.in_front {
+            return None;
+        }
+        uv.push(p.uv);
+    }
+    box2d_from_points(uv)
+        .filter(|bb| bb.width > 0.0 && bb.height > 0.0 && overlaps_image(bb, camera.width, camera.height))
+}
+
+fn decode_image(frame: &Frame, raw_image: Option<Vec<u8>>) -> Result<ImageState> {
+    let bytes = match raw_image {
+        Some(b) if b.is_empty() => return Ok(ImageState::Absent),
+        Some(b) => b,
+        None => match &frame.image {
+            None => return Ok(ImageState::Absent),
+            Some(text) => match base64::engine::general_purpose::STANDARD.decode(text.as_bytes()) {
+                Ok(b) => b,
+                Err(e) => return Ok(ImageState::Undecodable(format!("image is not valid base64: {e}"))),
+            },
+        },
+    };
+    let img = match image::load_from_memory(&bytes) {
+        Ok(img) => img.to_rgb8(),
+        Err(e) => return Ok(ImageState::Undecodable(format!("image is not a decodable JPEG or PNG: {e}"))),
+    };
+    let c = &frame.calibration;
+    if img.width() != c.width || img.height() != c.height {
+        return Err(Error::field(
+            "image",
+            format!(
+                "decoded image is {}x{} but calibration.width/height say {}x{}",
+                img.width(),
+                img.height(),
+                c.width,
+                c.height
+            ),
+        ));
+    }
+    Ok(ImageState::Decoded(img))
+}
+
+fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -> Result<FramePlan> {
+    frame.validate()?;
+    let camera = Camera::from_calibration(&frame.calibration)?;
+    let t0 = Instant::now();
+    let points = frame.points.decode()?;
+    if points.is_empty() {
+        return Err(Error::field("points", "no LiDAR points: every mode needs the points of the persons' boxes"));
+    }
+    let image = decode_image(frame, raw_image)?;
+    let decode = t0.elapsed();
+    let t1 = Instant::now();
+    let mut persons = Vec::with_capacity(frame.persons.len());
+    for (i, person) in frame.persons.iter().enumerate() {
+        let field = format!("persons[{i}]");
+        let box_2d = match &person.box_2d {
+            Some(b) => {
+                if !overlaps_image(b, camera.width, camera.height) {
+                    return Err(Error::field(
+                        format!("{field}.box_2d"),
+                        format!("lies entirely outside the {}x{} image", camera.width, camera.height),
+                    ));
+                }
+                Some(*b)
+            }
+            None => projected_box(&camera, &person.box_3d),
+        };
+        let prepared = prepare_person(None, Some(&camera), &points, &person.box_3d, box_2d.as_ref(), cfg);
+        let num_points = prepared.points.len();
+        let Some(input) = prepared.input else {
+            return Err(Error::field(
+                format!("{field}.box_3d"),
+                format!("no LiDAR point lies inside the box (grown by {} m on every side)", cfg.box_margin),
+            ));
+        };
+        let camera_problem: Option<(String, String)> = match (&image, box_2d) {
+            (ImageState::Absent, _) => Some(("image".into(), "no image in the request".into())),
+            (ImageState::Undecodable(m), _) => Some(("image".into(), m.clone())),
+            (ImageState::Decoded(_), None) => Some((
+                format!("{field}.box_2d"),
+                "no 2D box given and the projected 3D box is outside the camera view".into(),
+            )),
+            (ImageState::Decoded(_), Some(_)) => None,
+        };
+        let min = cfg.min_points as usize;
+        let (mode, reason) = match (frame.mode, &camera_problem) {
+            (RequestedMode::Auto, None) if num_points >= min => {
+                (Mode::Fusion, format!("camera and LiDAR usable ({num_points} points in the box)"))
+            }
+            (RequestedMode::Auto, None) => (
+                Mode::Camera,
+                format!("only {num_points} points in the box (fewer than {min}): camera keypoints lifted onto them"),
+            ),
+            (RequestedMode::Auto, Some((_, why))) => (Mode::Lidar, format!("camera unusable: {why}")),
+            (RequestedMode::Lidar, _) => (Mode::Lidar, "requested".into()),
+            (RequestedMode::Fusion | RequestedMode::Camera, Some((f, why))) => {
+                return Err(Error::field(f.clone(), format!("mode {:?} needs the camera: {why}", frame.mode)));
+            }
+            (RequestedMode::Fusion, None) => (Mode::Fusion, "requested".into()),
+            (RequestedMode::Camera, None) => (Mode::Camera, "requested".into()),
+        };
+        if mode == Mode::Camera && !input.uv.iter().any(|uv| uv[0].is_finite() && uv[1].is_finite()) {
+            return Err(Error::field(
+                format!("{field}.box_3d"),
+                "camera-only lifting needs points in front of the camera; none of the box's points are",
+            ));
+        }
+        let image_input = match (mode, &image, prepared.crop.as_ref()) {
+            (Mode::Fusion | Mode::Camera, ImageState::Decoded(img), Some(t)) => Some(normalize(&crop_rgb(img, t), cfg)),
+            (Mode::Fusion | Mode::Camera, _, _) => {
+                return Err(Error::Runtime(format!("{field}: camera mode chosen without a crop")));
+            }
+            (Mode::Lidar, _, _) => None,
+        };
+        persons.push(PersonPlan {
+            id: person.id.clone(),
+            mode,
+            reason,
+            box_frame: prepared.box_frame,
+            box_2d,
+            num_points,
+            input,
+            image_input,
+        });
+    }
+    Ok(FramePlan { camera, persons, decode, preprocess: t1.elapsed() })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::CameraCalibration;
+
+    /// A forward-looking camera at the origin: camera frame = vehicle frame.
+    fn camera() -> Camera {
+        let mut ext = vec![0.0; 16];
+        for i in 0..4 {
+            ext[i * 5] = 1.0;
+        }
+        Camera::from_calibration(&CameraCalibration {
+            intrinsic: vec![100.0, 100.0, 50.0, 40.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            extrinsic: ext,
+            width: 100,
+            height: 80,
+        })
+        .unwrap()
+    }
+
+    fn b3(x: f64, y: f64) -> Box3d {
+        Box3d { center_x: x, center_y: y, center_z: 0.0, length: 1.0, width: 1.0, height: 2.0, heading: 0.0 }
+    }
+
+    #[test]
+    fn projected_box_of_a_box_straight_ahead() {
+        // Corners at x = 9.5 (near face) project to u = 50 ± 100·0.5/9.5, v = 40 ± 100·1/9.5.
+        let b = projected_box(&camera(), &b3(10.0, 0.0)).unwrap();
+        assert!((b.center_x - 50.0).abs() < 1e-9 && (b.center_y - 40.0).abs() < 1e-9);
+        assert!((b.width - 100.0 / 9.5).abs() < 1e-9 && (b.height - 200.0 / 9.5).abs() < 1e-9);
+    }
+
+    #[test]
+    fn boxes_behind_or_beside_the_camera_have_no_projection() {
+        assert!(projected_box(&camera(), &b3(-10.0, 0.0)).is_none());
+        // Far to the left: u = 50 - 100·20/10 < 0 for every corner.
+        assert!(projected_box(&camera(), &b3(10.0, 20.0)).is_none());
+        // Straddling the image plane (a corner behind the camera).
+        assert!(projected_box(&camera(), &b3(0.2, 0.0)).is_none());
+    }
+
+    #[test]
+    fn overlap_with_the_image() {
+        let b = |cx, cy| Box2d { center_x: cx, center_y: cy, width: 10.0, height: 10.0 };
+        assert!(overlaps_image(&b(50.0, 40.0), 100, 80));
+        assert!(overlaps_image(&b(-4.0, 40.0), 100, 80));
+        assert!(!overlaps_image(&b(-5.0, 40.0), 100, 80));
+        assert!(!overlaps_image(&b(50.0, 85.0), 100, 80));
+    }
+}

@@ -1,0 +1,376 @@
+//! One frame from world to outputs: LiDAR scan, labels, the pipeline's crops and point inputs
+//! (prepared samples), and the request fixture; plus the shard writer.
+//!
+//! Frames with a fixture render the full image, go through JPEG (quality 92) and crop from the
+//! decoded image, exactly as the server will. Training-only frames render just the crop window:
+//! at image resolution when the window is at most 2·S pixels wide (then through the same JPEG
+//! codec), otherwise one ray per step×step block with step = ceil(side / 2S), i.e. at least 2×2
+//! supersampling of the S×S crop; the crop is then cut by the same `crop_rgb`.
+
+use std::io::Cursor;
+use std::path::{Path, PathBuf};
+
+use image::RgbImage;
+use ndarray::{ArrayD, IxDyn};
+use ndarray_npy::{NpzWriter, WritableElement};
+use rand::{Rng, SeedableRng};
+use rand_chacha::ChaCha8Rng;
+
+use super::labels::{label_person, PersonLabels};
+use super::lidar::{scan, Return};
+use super::math::{hash, V3};
+use super::render::{render, Region};
+use super::world::{lidar_range, sample_world, World, LIDAR_ORIGIN};
+use crate::error::{Error, Result};
+use crate::frame::{Frame, GroundTruth, Keypoints2d, Keypoints3d, Person, Points, RequestedMode};
+use crate::keypoints::K;
+use crate::pipeline::{crop_rgb, input_seed, prepare_person, select_indices, to_local, CropTransform, PipelineConfig};
+
+/// Samples per shard.
+pub const SHARD_SIZE: usize = 1024;
+/// JPEG quality of request images.
+pub const JPEG_QUALITY: u8 = 92;
+
+/// One prepared pedestrian, laid out as the shard arrays (docs/DATA.md).
+#[derive(Debug, Clone)]
+pub struct Sample {
+    pub image: Vec<u8>,
+    pub points_xyz: Vec<[f32; 3]>,
+    pub points_uv: Vec<[f32; 2]>,
+    pub serve_xyz: Vec<[f32; 3]>,
+    pub serve_uv: Vec<[f32; 2]>,
+    pub kp2d: [[f32; 2]; K],
+    pub kp2d_visible: [u8; K],
+    pub kp2d_image_true: [[f32; 2]; K],
+    pub kp3d: [[f32; 3]; K],
+    pub kp3d_vehicle: [[f32; 3]; K],
+    pub kp3d_visible: [u8; K],
+    pub box3d: [f32; 7],
+    pub box2d: [f32; 4],
+    pub crop: [f32; 3],
+    pub intrinsic: [f32; 9],
+    pub extrinsic: [f32; 16],
+    pub image_size_wh: [i32; 2],
+    pub sensor_xyz: [f32; 3],
+    pub range_m: f32,
+    pub frame_index: i32,
+}
+
+/// Per-sample numbers for the realism statistics.
+#[derive(Debug, Clone)]
+pub struct SampleStats {
+    pub range_m: f64,
+    pub activity: &'static str,
+    /// Points in the 3D box (grown by the pipeline's margin), before the cap.
+    pub in_box_points: usize,
+    /// LiDAR returns on the person's body or carried objects.
+    pub person_points: usize,
+    pub in_image: [bool; K],
+    pub visible_2d: [bool; K],
+    /// A point of the box projects within `near_px` model pixels of the exact keypoint.
+    pub near_point: [bool; K],
+}
+
+/// Everything a frame produced.
+pub struct FrameResult {
+    pub index: usize,
+    pub samples: Vec<Sample>,
+    pub stats: Vec<SampleStats>,
+    pub fixture: Option<Frame>,
+}
+
+/// The frame's random generator: a function of (seed, index) only.
+pub fn frame_rng(seed: u64, index: usize) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(hash(&[seed, index as u64]))
+}
+
+fn persons_in_frame<R: Rng>(rng: &mut R) -> usize {
+    match rng.random_range(0..100) {
+        0..=39 => 1,
+        40..=74 => 2,
+        _ => 3,
+    }
+}
+
+/// JPEG-encodes an image at the fixture quality.
+pub fn encode_jpeg(img: &RgbImage) -> Result<Vec<u8>> {
+    let mut buf = Cursor::new(Vec::new());
+    image::codecs::jpeg::JpegEncoder::new_with_quality(&mut buf, JPEG_QUALITY)
+        .encode_image(img)
+        .map_err(|e| Error::Io(format!("jpeg encode: {e}")))?;
+    Ok(buf.into_inner())
+}
+
+/// Decodes a JPEG the way the server does.
+pub fn decode_jpeg(bytes: &[u8]) -> Result<RgbImage> {
+    image::load_from_memory_with_format(bytes, image::ImageFormat::Jpeg)
+        .map(|i| i.to_rgb8())
+        .map_err(|e| Error::Io(format!("jpeg decode: {e}")))
+}
+
+/// Renders only the crop window of `t` and cuts the S×S crop from it (training-only frames).
+pub fn render_crop(world: &World, t: &CropTransform) -> Result<RgbImage> {
+    let cam = &world.camera;
+    let side = t.side();
+    let step = ((side / (2.0 * t.size as f64)).ceil() as i64).max(1);
+    let (wx0, wy0) = (t.x0.floor().max(0.0) as i64, t.y0.floor().max(0.0) as i64);
+    let wx1 = ((t.x0 + side).ceil() as i64).min(cam.width as i64);
+    let wy1 = ((t.y0 + side).ceil() as i64).min(cam.height as i64);
+    if wx1 <= wx0 || wy1 <= wy0 {
+        return Ok(RgbImage::new(t.size, t.size));
+    }
+    let region = Region {
+        x0: wx0,
+        y0: wy0,
+        w: ((wx1 - wx0 + step - 1) / step) as u32,
+        h: ((wy1 - wy0 + step - 1) / step) as u32,
+        step: step as u32,
+    };
+    let mut patch = render(world, region).image;
+    if step == 1 {
+        patch = decode_jpeg(&encode_jpeg(&patch)?)?;
+    }
+    let s = step as f64;
+    let local = CropTransform { x0: (t.x0 - wx0 as f64) / s, y0: (t.y0 - wy0 as f64) / s, scale: t.scale * s, size: t.size };
+    Ok(crop_rgb(&patch, &local))
+}
+
+fn f32x<const N: usize>(v: [f64; N]) -> [f32; N] {
+    v.map(|x| x as f32)
+}
+
+/// Simulates frame `index`: samples for its labelled persons and, when asked, its request fixture.
+pub fn simulate_frame(
+    seed: u64,
+    index: usize,
+    with_fixture: bool,
+    cfg: &PipelineConfig,
+    points_cap: usize,
+    near_px: f64,
+) -> Result<FrameResult> {
+    let mut rng = frame_rng(seed, index);
+    let n = persons_in_frame(&mut rng);
+    let world = sample_world(&mut rng, n)?;
+    let returns: Vec<Return> = scan(&world, &mut rng);
+    let points: Vec<[f32; 3]> = returns.iter().map(|r| r.xyz).collect();
+    let cam = &world.camera;
+    let calib = cam.to_calibration();
+    let full = if with_fixture {
+        let jpeg = encode_jpeg(&render(&world, Region::full(cam)).image)?;
+        Some((decode_jpeg(&jpeg)?, jpeg))
+    } else {
+        None
+    };
+    let mut out = FrameResult { index, samples: Vec::new(), stats: Vec::new(), fixture: None };
+    let mut fixture_persons = Vec::new();
+    for (li, p) in world.persons.iter().enumerate() {
+        let on_person: Vec<V3> = returns
+            .iter()
+            .filter(|r| r.object == p.object)
+            .map(|r| [r.xyz[0] as f64, r.xyz[1] as f64, r.xyz[2] as f64])
+            .collect();
+        let Some(labels) = label_person(&world, p, &on_person, &mut rng) else {
+            continue;
+        };
+        let prepared =
+            prepare_person(full.as_ref().map(|f| &f.0), Some(cam), &points, &p.box3d, Some(&labels.box2d), cfg);
+        let t = CropTransform::for_box(&labels.box2d, cfg);
+        let crop = match prepared.crop_rgb.clone() {
+            Some(c) => c,
+            None => render_crop(&world, &t)?,
+        };
+        let sample = make_sample(&world, p, &labels, &prepared, &t, crop, cfg, points_cap, index, &calib);
+        out.stats.push(sample_stats(&sample, p, &labels, &prepared.points.model_uv, on_person.len(), &t, near_px));
+        out.samples.push(sample);
+        if with_fixture {
+            fixture_persons.push(Person {
+                id: format!("p{li}"),
+                box_2d: Some(labels.box2d),
+                box_3d: p.box3d,
+                ground_truth: Some(GroundTruth {
+                    keypoints_3d: Some(Keypoints3d { xyz: p.keypoints.to_vec(), visible: labels.visible_3d.to_vec() }),
+                    keypoints_2d: Some(Keypoints2d {
+                        uv: labels.uv_true.iter().map(|u| if u[0].is_finite() { *u } else { [0.0, 0.0] }).collect(),
+                        visible: labels.visible_2d.to_vec(),
+                    }),
+                }),
+            });
+        }
+    }
+    if let Some((_, jpeg)) = full {
+        use base64::Engine;
+        out.fixture = Some(Frame {
+            frame_id: Some(format!("sim-{seed}-{index:06}")),
+            image: Some(base64::engine::general_purpose::STANDARD.encode(jpeg)),
+            calibration: calib,
+            points: Points::encode(&points),
+            persons: fixture_persons,
+            mode: RequestedMode::Auto,
+        });
+    }
+    Ok(out)
+}
+
+#[allow(clippy::too_many_arguments)]
+fn make_sample(
+    world: &World,
+    p: &super::world::PlacedPerson,
+    labels: &PersonLabels,
+    prepared: &crate::pipeline::PreparedPerson,
+    t: &CropTransform,
+    crop: RgbImage,
+    cfg: &PipelineConfig,
+    points_cap: usize,
+    index: usize,
+    calib: &crate::frame::CameraCalibration,
+) -> Sample {
+    let bf = &prepared.box_frame;
+    let pts = &prepared.points;
+    let keep: Vec<usize> = if pts.len() > points_cap {
+        select_indices(pts.len(), points_cap, input_seed(&pts.vehicle))
+    } else {
+        (0..pts.len()).collect()
+    };
+    let (serve_xyz, serve_uv) = match &prepared.input {
+        Some(inp) => (inp.xyz.clone(), inp.uv.clone()),
+        None => (vec![[0.0; 3]; cfg.num_points as usize], vec![[0.0; 2]; cfg.num_points as usize]),
+    };
+    let b = &p.box3d;
+    Sample {
+        image: crop.into_raw(),
+        points_xyz: keep.iter().map(|&i| pts.local[i]).collect(),
+        points_uv: keep.iter().map(|&i| pts.model_uv[i]).collect(),
+        serve_xyz,
+        serve_uv,
+        kp2d: labels.uv_label.map(|u| f32x(t.to_model(u))),
+        kp2d_visible: labels.visible_2d.map(u8::from),
+        kp2d_image_true: labels.uv_true.map(f32x),
+        kp3d: p.keypoints.map(|k| f32x(to_local(bf, k, cfg))),
+        kp3d_vehicle: p.keypoints.map(f32x),
+        kp3d_visible: labels.visible_3d.map(u8::from),
+        box3d: f32x([b.center_x, b.center_y, b.center_z, b.length, b.width, b.height, b.heading]),
+        box2d: f32x([labels.box2d.center_x, labels.box2d.center_y, labels.box2d.width, labels.box2d.height]),
+        crop: f32x([t.x0, t.y0, t.scale]),
+        intrinsic: std::array::from_fn(|i| calib.intrinsic[i] as f32),
+        extrinsic: std::array::from_fn(|i| calib.extrinsic[i] as f32),
+        image_size_wh: [world.camera.width as i32, world.camera.height as i32],
+        sensor_xyz: f32x(to_local(bf, LIDAR_ORIGIN, cfg)),
+        range_m: lidar_range([b.center_x, b.center_y, b.center_z]) as f32,
+        frame_index: index as i32,
+    }
+}
+
+fn sample_stats(
+    s: &Sample,
+    p: &super::world::PlacedPerson,
+    labels: &PersonLabels,
+    model_uv: &[[f32; 2]],
+    person_points: usize,
+    t: &CropTransform,
+    near_px: f64,
+) -> SampleStats {
+    let mut in_image = [false; K];
+    let mut near_point = [false; K];
+    let (w, h) = (s.image_size_wh[0] as f64, s.image_size_wh[1] as f64);
+    for k in 0..K {
+        let u = labels.uv_true[k];
+        in_image[k] = u[0].is_finite() && u[0] >= 0.0 && u[1] >= 0.0 && u[0] < w && u[1] < h;
+        let m = t.to_model(u);
+        near_point[k] = model_uv.iter().any(|q| {
+            let (dx, dy) = (q[0] as f64 - m[0], q[1] as f64 - m[1]);
+            dx * dx + dy * dy <= near_px * near_px
+        });
+    }
+    SampleStats {
+        range_m: s.range_m as f64,
+        activity: p.model.activity.name(),
+        in_box_points: model_uv.len(),
+        person_points,
+        in_image,
+        visible_2d: labels.visible_2d,
+        near_point,
+    }
+}
+
+/// Writes samples into `shard-NNNNN.npz` files of `SHARD_SIZE`.
+pub struct ShardWriter {
+    dir: PathBuf,
+    image_size: usize,
+    points_cap: usize,
+    num_points: usize,
+    buf: Vec<Sample>,
+    /// (file name, samples) of every shard written.
+    pub written: Vec<(String, usize)>,
+}
+
+fn add<T: WritableElement>(npz: &mut NpzWriter<std::fs::File>, name: &str, shape: &[usize], data: Vec<T>) -> Result<()> {
+    let a = ArrayD::from_shape_vec(IxDyn(shape), data).map_err(|e| Error::Io(format!("shard array {name}: {e}")))?;
+    npz.add_array(name, &a).map_err(|e| Error::Io(format!("shard array {name}: {e}")))
+}
+
+impl ShardWriter {
+    pub fn new(dir: &Path, cfg: &PipelineConfig, points_cap: usize) -> ShardWriter {
+        ShardWriter {
+            dir: dir.to_path_buf(),
+            image_size: cfg.image_size as usize,
+            points_cap,
+            num_points: cfg.num_points as usize,
+            buf: Vec::with_capacity(SHARD_SIZE),
+            written: Vec::new(),
+        }
+    }
+
+    pub fn push(&mut self, s: Sample) -> Result<()> {
+        self.buf.push(s);
+        if self.buf.len() == SHARD_SIZE {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    /// Writes the buffered samples (if any) as the next shard.
+    pub fn flush(&mut self) -> Result<()> {
+        if self.buf.is_empty() {
+            return Ok(());
+        }
+        let name = format!("shard-{:05}.npz", self.written.len());
+        let file = std::fs::File::create(self.dir.join(&name))?;
+        let mut npz = NpzWriter::new(file);
+        let b = std::mem::take(&mut self.buf);
+        let (m, s, cap, n) = (b.len(), self.image_size, self.points_cap, self.num_points);
+        add(&mut npz, "image", &[m, s, s, 3], b.iter().flat_map(|x| x.image.iter().copied()).collect())?;
+        let pad3 = |v: &[[f32; 3]]| {
+            let mut out: Vec<f32> = v.iter().flatten().copied().collect();
+            out.resize(cap * 3, 0.0);
+            out
+        };
+        let pad2 = |v: &[[f32; 2]]| {
+            let mut out: Vec<f32> = v.iter().flatten().copied().collect();
+            out.resize(cap * 2, 0.0);
+            out
+        };
+        add(&mut npz, "points_xyz", &[m, cap, 3], b.iter().flat_map(|x| pad3(&x.points_xyz)).collect())?;
+        add(&mut npz, "points_uv", &[m, cap, 2], b.iter().flat_map(|x| pad2(&x.points_uv)).collect())?;
+        add(&mut npz, "points_count", &[m], b.iter().map(|x| x.points_xyz.len() as i32).collect())?;
+        add(&mut npz, "serve_xyz", &[m, n, 3], b.iter().flat_map(|x| x.serve_xyz.iter().flatten().copied()).collect())?;
+        add(&mut npz, "serve_uv", &[m, n, 2], b.iter().flat_map(|x| x.serve_uv.iter().flatten().copied()).collect())?;
+        add(&mut npz, "kp2d", &[m, K, 2], b.iter().flat_map(|x| x.kp2d.iter().flatten().copied()).collect())?;
+        add(&mut npz, "kp2d_visible", &[m, K], b.iter().flat_map(|x| x.kp2d_visible).collect())?;
+        add(&mut npz, "kp2d_image_true", &[m, K, 2], b.iter().flat_map(|x| x.kp2d_image_true.iter().flatten().copied()).collect())?;
+        add(&mut npz, "kp3d", &[m, K, 3], b.iter().flat_map(|x| x.kp3d.iter().flatten().copied()).collect())?;
+        add(&mut npz, "kp3d_vehicle", &[m, K, 3], b.iter().flat_map(|x| x.kp3d_vehicle.iter().flatten().copied()).collect())?;
+        add(&mut npz, "kp3d_visible", &[m, K], b.iter().flat_map(|x| x.kp3d_visible).collect())?;
+        add(&mut npz, "box3d", &[m, 7], b.iter().flat_map(|x| x.box3d).collect())?;
+        add(&mut npz, "box2d", &[m, 4], b.iter().flat_map(|x| x.box2d).collect())?;
+        add(&mut npz, "crop", &[m, 3], b.iter().flat_map(|x| x.crop).collect())?;
+        add(&mut npz, "intrinsic", &[m, 9], b.iter().flat_map(|x| x.intrinsic).collect())?;
+        add(&mut npz, "extrinsic", &[m, 16], b.iter().flat_map(|x| x.extrinsic).collect())?;
+        add(&mut npz, "image_size_wh", &[m, 2], b.iter().flat_map(|x| x.image_size_wh).collect())?;
+        add(&mut npz, "sensor_xyz", &[m, 3], b.iter().flat_map(|x| x.sensor_xyz).collect())?;
+        add(&mut npz, "range_m", &[m], b.iter().map(|x| x.range_m).collect())?;
+        add(&mut npz, "frame_index", &[m], b.iter().map(|x| x.frame_index).collect())?;
+        npz.finish().map_err(|e| Error::Io(format!("shard {name}: {e}")))?;
+        self.written.push((name, m));
+        Ok(())
+    }
+}

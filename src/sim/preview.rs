@@ -1,0 +1,89 @@
+//! Contact sheets for eyeballing the data: each sample's crop with projected LiDAR points, the 2D
+//! labels and skeleton, next to a side view of its points with the 3D skeleton.
+
+use image::{Rgb, RgbImage};
+
+use super::dataset::Sample;
+use crate::keypoints::{K, SKELETON};
+
+fn put(img: &mut RgbImage, x: i64, y: i64, c: [u8; 3]) {
+    if x >= 0 && y >= 0 && (x as u32) < img.width() && (y as u32) < img.height() {
+        img.put_pixel(x as u32, y as u32, Rgb(c));
+    }
+}
+
+fn dot(img: &mut RgbImage, x: f64, y: f64, r: i64, c: [u8; 3]) {
+    let (cx, cy) = (x.floor() as i64, y.floor() as i64);
+    for dy in -r..=r {
+        for dx in -r..=r {
+            if dx * dx + dy * dy <= r * r {
+                put(img, cx + dx, cy + dy, c);
+            }
+        }
+    }
+}
+
+fn line(img: &mut RgbImage, a: [f64; 2], b: [f64; 2], c: [u8; 3]) {
+    let n = ((b[0] - a[0]).abs().max((b[1] - a[1]).abs()).ceil() as usize).clamp(1, 4096);
+    for i in 0..=n {
+        let t = i as f64 / n as f64;
+        dot(img, a[0] + (b[0] - a[0]) * t, a[1] + (b[1] - a[1]) * t, 1, c);
+    }
+}
+
+fn depth_colour(z: f32) -> [u8; 3] {
+    // Blue (low) to yellow (high) over the body's height.
+    let t = ((z + 1.0) / 2.0).clamp(0.0, 1.0);
+    [(255.0 * t) as u8, (200.0 * t + 55.0) as u8, (255.0 * (1.0 - t)) as u8]
+}
+
+fn kp_colour(k: usize) -> [u8; 3] {
+    match k {
+        0 => [255, 255, 255],
+        k if k % 2 == 1 => [255, 60, 60],
+        _ => [60, 255, 60],
+    }
+}
+
+/// A contact sheet of up to `cols`×rows samples: crop | side view.
+pub fn sheet(samples: &[&Sample], s: u32, cols: u32) -> RgbImage {
+    let rows = (samples.len() as u32).div_ceil(cols).max(1);
+    let mut img = RgbImage::from_pixel(cols * 2 * s, rows * s, Rgb([30, 30, 30]));
+    for (n, smp) in samples.iter().enumerate() {
+        let (ox, oy) = ((n as u32 % cols) * 2 * s, (n as u32 / cols) * s);
+        let mut tile = RgbImage::from_raw(s, s, smp.image.clone()).unwrap_or_else(|| RgbImage::new(s, s));
+        for (uv, xyz) in smp.points_uv.iter().zip(&smp.points_xyz) {
+            if uv[0].is_finite() {
+                dot(&mut tile, uv[0] as f64, uv[1] as f64, 0, depth_colour(xyz[2]));
+            }
+        }
+        let kp = smp.kp2d.map(|p| [p[0] as f64, p[1] as f64]);
+        for &(a, b) in &SKELETON {
+            if smp.kp2d_visible[a] == 1 && smp.kp2d_visible[b] == 1 {
+                line(&mut tile, kp[a], kp[b], [255, 200, 0]);
+            }
+        }
+        for k in 0..K {
+            let c = if smp.kp2d_visible[k] == 1 { kp_colour(k) } else { [120, 120, 120] };
+            dot(&mut tile, kp[k][0], kp[k][1], 2, c);
+        }
+        // Side view: local x (along the heading) to the right, z up; 2.4 m across the tile.
+        let mut side = RgbImage::from_pixel(s, s, Rgb([12, 12, 20]));
+        let px = s as f64 / 2.4;
+        let to = |x: f32, z: f32| [s as f64 / 2.0 + x as f64 * px, s as f64 / 2.0 - z as f64 * px];
+        for xyz in &smp.points_xyz {
+            let p = to(xyz[0], xyz[2]);
+            dot(&mut side, p[0], p[1], 1, [170, 170, 170]);
+        }
+        let k3: Vec<[f64; 2]> = smp.kp3d.iter().map(|q| to(q[0], q[2])).collect();
+        for &(a, b) in &SKELETON {
+            line(&mut side, k3[a], k3[b], [255, 200, 0]);
+        }
+        for (k, p) in k3.iter().enumerate() {
+            dot(&mut side, p[0], p[1], 2, kp_colour(k));
+        }
+        image::imageops::replace(&mut img, &tile, ox as i64, oy as i64);
+        image::imageops::replace(&mut img, &side, (ox + s) as i64, oy as i64);
+    }
+    img
+}
