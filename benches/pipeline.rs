@@ -7,7 +7,9 @@ use image::RgbImage;
 use posefuse::frame::{Box2d, Box3d, CameraCalibration};
 use posefuse::geometry::Camera;
 use posefuse::keypoints::K;
-use posefuse::pipeline::{normalize, prepare_person, sample_features, smooth_heatmaps, PipelineConfig};
+use posefuse::pipeline::{
+    crop_rgb, gather_points, normalize, point_input, prepare_person, smoothed_features, PipelineConfig,
+};
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 use std::hint::black_box;
@@ -45,10 +47,25 @@ fn bench_person(c: &mut Criterion, image_size: u32) {
             let p = prepare_person(Some(&image), Some(&cam), &points, &box3d, Some(&box2d), &cfg);
             let tensor = p.crop_rgb.as_ref().map(|crop| normalize(crop, &cfg));
             let input = p.input.as_ref().map(|i| i.uv.clone()).unwrap_or_default();
-            let smoothed = smooth_heatmaps(&heatmaps, K, hw, hw, &cfg);
-            let features = sample_features(&smoothed, K, hw, hw, &input, cfg.image_size);
+            let features = smoothed_features(&heatmaps, K, hw, hw, &input, &cfg);
             black_box((tensor, features))
         })
+    });
+    // the same work step by step, to see where the time goes
+    let t = posefuse::pipeline::CropTransform::for_box(&box2d, &cfg);
+    c.bench_function(&format!("crop_resize_s{image_size}"), |b| b.iter(|| black_box(crop_rgb(&image, &t))));
+    let crop = crop_rgb(&image, &t);
+    c.bench_function(&format!("normalize_s{image_size}"), |b| b.iter(|| black_box(normalize(&crop, &cfg))));
+    let frame = posefuse::geometry::BoxFrame::new(&box3d);
+    c.bench_function(&format!("points_s{image_size}"), |b| {
+        b.iter(|| {
+            let pp = gather_points(&points, &frame, Some(&cam), Some(&t), &cfg);
+            black_box(point_input(&pp, &cfg))
+        })
+    });
+    let uv = point_input(&gather_points(&points, &frame, Some(&cam), Some(&t), &cfg), &cfg).map(|i| i.uv).unwrap_or_default();
+    c.bench_function(&format!("fusion_s{image_size}"), |b| {
+        b.iter(|| black_box(smoothed_features(&heatmaps, K, hw, hw, &uv, &cfg)))
     });
 }
 

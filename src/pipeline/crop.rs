@@ -47,43 +47,54 @@ impl CropTransform {
 
 /// The S×S crop of `image` described by `t`; pixels outside the image are black.
 ///
-/// The crop window is first cut out at integer pixel bounds (padding with black where it leaves
-/// the image), then resized with a convolution filter over the exact fractional window, so the
-/// result does not depend on how much of the window lies outside the image.
+/// The resize filter reads a few pixels beyond the window, so the source is the window plus a
+/// margin wider than the filter: the image itself when that fits inside it, otherwise a copy
+/// padded with black. Both give the same result wherever they both apply.
 pub fn crop_rgb(image: &RgbImage, t: &CropTransform) -> RgbImage {
     let s = t.size;
     let side = t.side();
-    let (ix0, iy0) = (t.x0.floor() as i64, t.y0.floor() as i64);
-    let ix1 = (t.x0 + side).ceil() as i64;
-    let iy1 = (t.y0 + side).ceil() as i64;
-    let (pw, ph) = ((ix1 - ix0).max(1) as u32, (iy1 - iy0).max(1) as u32);
-    let mut patch = RgbImage::new(pw, ph);
+    // a box filter reads half a destination pixel (1/(2·scale) source pixels) around the window
+    let margin = (1.0 / t.scale).ceil() as i64 + 2;
+    let ix0 = t.x0.floor() as i64 - margin;
+    let iy0 = t.y0.floor() as i64 - margin;
+    let ix1 = (t.x0 + side).ceil() as i64 + margin;
+    let iy1 = (t.y0 + side).ceil() as i64 + margin;
     let (iw, ih) = (image.width() as i64, image.height() as i64);
-    let (cx0, cy0) = (ix0.max(0), iy0.max(0));
-    let (cx1, cy1) = (ix1.min(iw), iy1.min(ih));
-    if cx0 < cx1 && cy0 < cy1 {
-        let row_bytes = ((cx1 - cx0) * 3) as usize;
-        let src = image.as_raw();
-        let dst_stride = pw as usize * 3;
-        let dst = patch.as_mut();
-        for y in cy0..cy1 {
-            let so = ((y * iw + cx0) * 3) as usize;
-            let d = ((y - iy0) as usize) * dst_stride + ((cx0 - ix0) * 3) as usize;
-            dst[d..d + row_bytes].copy_from_slice(&src[so..so + row_bytes]);
-        }
-    }
     let mut out = RgbImage::new(s, s);
-    let src_img = Image::from_vec_u8(pw, ph, patch.into_raw(), PixelType::U8x3);
-    let mut dst_img = Image::new(s, s, PixelType::U8x3);
-    let opts = ResizeOptions::new()
-        .resize_alg(ResizeAlg::Convolution(FilterType::Bilinear))
-        .crop(t.x0 - ix0 as f64, t.y0 - iy0 as f64, side, side);
-    let resized = match src_img {
-        Ok(src_img) => Resizer::new().resize(&src_img, &mut dst_img, &opts).is_ok(),
-        Err(_) => false,
+    let mut dst = Image::new(s, s, PixelType::U8x3);
+    let inside = ix0 >= 0 && iy0 >= 0 && ix1 <= iw && iy1 <= ih;
+    let done = if inside {
+        // the filter reads at most `margin` pixels around the window, all inside the image
+        let opts = ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Box)).crop(t.x0, t.y0, side, side);
+        match fast_image_resize::images::ImageRef::new(image.width(), image.height(), image.as_raw(), PixelType::U8x3) {
+            Ok(view) => Resizer::new().resize(&view, &mut dst, &opts).is_ok(),
+            Err(_) => false,
+        }
+    } else {
+        let (pw, ph) = ((ix1 - ix0).max(1) as u32, (iy1 - iy0).max(1) as u32);
+        let mut patch = vec![0u8; pw as usize * ph as usize * 3];
+        let (cx0, cy0) = (ix0.max(0), iy0.max(0));
+        let (cx1, cy1) = (ix1.min(iw), iy1.min(ih));
+        if cx0 < cx1 && cy0 < cy1 {
+            let row_bytes = ((cx1 - cx0) * 3) as usize;
+            let src = image.as_raw();
+            let dst_stride = pw as usize * 3;
+            for y in cy0..cy1 {
+                let so = ((y * iw + cx0) * 3) as usize;
+                let d = ((y - iy0) as usize) * dst_stride + ((cx0 - ix0) * 3) as usize;
+                patch[d..d + row_bytes].copy_from_slice(&src[so..so + row_bytes]);
+            }
+        }
+        let opts = ResizeOptions::new()
+            .resize_alg(ResizeAlg::Convolution(FilterType::Box))
+            .crop(t.x0 - ix0 as f64, t.y0 - iy0 as f64, side, side);
+        match Image::from_vec_u8(pw, ph, patch, PixelType::U8x3) {
+            Ok(src) => Resizer::new().resize(&src, &mut dst, &opts).is_ok(),
+            Err(_) => false,
+        }
     };
-    if resized {
-        out.as_mut().copy_from_slice(dst_img.buffer());
+    if done {
+        out.as_mut().copy_from_slice(dst.buffer());
     }
     out
 }
@@ -169,6 +180,29 @@ mod tests {
         // entirely outside
         let t = CropTransform { x0: 500.0, y0: 500.0, scale: 1.0, size: 16 };
         assert!(crop_rgb(&img, &t).as_raw().iter().all(|&v| v == 0));
+    }
+
+    #[test]
+    fn the_in_image_and_padded_paths_agree() {
+        let mut img = RgbImage::new(300, 200);
+        for (x, y, p) in img.enumerate_pixels_mut() {
+            *p = image::Rgb([(x * 7 % 256) as u8, (y * 13 % 256) as u8, ((x + y) % 256) as u8]);
+        }
+        // a window well inside (direct path), and the same window content shifted so that its
+        // margin touches the border (padded path): equal where both read only image pixels
+        let inside = CropTransform { x0: 100.3, y0: 60.7, scale: 64.0 / 90.0, size: 64 };
+        let a = crop_rgb(&img, &inside);
+        let mut shifted = RgbImage::new(300, 200);
+        for y in 0..200 {
+            for x in 0..300 {
+                if x + 98 < 300 && y + 58 < 200 {
+                    shifted.put_pixel(x, y, *img.get_pixel(x + 98, y + 58));
+                }
+            }
+        }
+        let near_edge = CropTransform { x0: 2.3, y0: 2.7, ..inside };
+        let b = crop_rgb(&shifted, &near_edge);
+        assert_eq!(a, b);
     }
 
     #[test]

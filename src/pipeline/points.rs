@@ -66,15 +66,20 @@ pub fn gather_points(
     let m = cfg.box_margin;
     // An axis-aligned bound of the rotated box rejects most of a sweep with three compares.
     let reach = ((b.size[0] / 2.0 + m).powi(2) + (b.size[1] / 2.0 + m).powi(2)).sqrt();
-    let lo = [b.center[0] - reach, b.center[1] - reach, b.center[2] - b.size[2] / 2.0 - m];
-    let hi = [b.center[0] + reach, b.center[1] + reach, b.center[2] + b.size[2] / 2.0 + m];
+    let lo = [b.center[0] - reach, b.center[1] - reach, b.center[2] - b.size[2] / 2.0 - m].map(|v| (v - 1e-3) as f32);
+    let hi = [b.center[0] + reach, b.center[1] + reach, b.center[2] + b.size[2] / 2.0 + m].map(|v| (v + 1e-3) as f32);
+    let half = [b.size[0] / 2.0 + m, b.size[1] / 2.0 + m, b.size[2] / 2.0 + m];
     let mut out = PersonPoints::default();
     for p in points {
-        let q = [p[0] as f64, p[1] as f64, p[2] as f64];
-        if (0..3).any(|a| q[a] < lo[a] || q[a] > hi[a]) || !b.contains(q, m) {
+        if p[0] < lo[0] || p[0] > hi[0] || p[1] < lo[1] || p[1] > hi[1] || p[2] < lo[2] || p[2] > hi[2] {
             continue;
         }
-        let l = to_local(b, q, cfg);
+        let q = [p[0] as f64, p[1] as f64, p[2] as f64];
+        let boxed = b.to_local(q);
+        if (0..3).any(|a| boxed[a].abs() > half[a]) {
+            continue;
+        }
+        let l = if cfg.rotate_by_heading { boxed } else { to_local(b, q, cfg) };
         let uv = match (camera, crop) {
             (Some(cam), Some(t)) => {
                 let pr = cam.project(q);
@@ -94,11 +99,12 @@ pub fn gather_points(
     out
 }
 
-/// FNV-1a over the points' bytes: the same points always give the same selection.
+/// FNV-1a over the points' bit patterns, a 32-bit word at a time: the same points always give
+/// the same selection.
 pub fn input_seed(points: &[[f32; 3]]) -> u64 {
     let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-    for b in points.iter().flat_map(|p| p.iter().flat_map(|v| v.to_le_bytes())) {
-        h ^= b as u64;
+    for v in points.iter().flatten() {
+        h ^= v.to_bits() as u64;
         h = h.wrapping_mul(0x0000_0100_0000_01b3);
     }
     h
