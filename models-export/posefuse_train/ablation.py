@@ -192,7 +192,7 @@ def main(argv=None):
     # are capped at 1.3x the budget in case the shared CPU gets busier.
     if a.budget_min > 0:
         row_budget = max(30.0, (a.budget_min * 60 - 120 - (time.time() - t_start)) / max(1, len(rows)))
-    nets, epochs = {}, a.point_epochs
+    nets, epochs, steps = {}, a.point_epochs, 0
     order = sorted(rows, key=lambda r: (not ROWS[r][0], not ROWS[r][1], ROWS[r][2]))
     for name in order:
         fusion, seg, depth = ROWS[name]
@@ -202,6 +202,7 @@ def main(argv=None):
             fusion=fusion,
             seg=seg,
             epochs=epochs,
+            steps=steps,
             lr=a.point_lr,
             optimizer=a.point_optimizer,
             rotate_deg=a.rotate_deg,
@@ -212,7 +213,7 @@ def main(argv=None):
         net = train_point(train, lab, sm_train if fusion else None, cfg, net_cfg, pcfg, a.device, name, log)
         net = net.cpu()
         if first:
-            epochs = net.trained_epochs
+            epochs, steps = net.trained_epochs, len(net.loss_history)
         train_s = time.time() - t
         pred = predict_points(
             net, test["serve_xyz"], test["serve_uv"], sm_test if fusion else None, cfg.image_size

@@ -28,6 +28,7 @@ class TrainPointConfig:
     fusion: bool = True
     seg: bool = True
     epochs: float = 8.0
+    steps: int = 0  # > 0: exactly this many steps (overrides epochs)
     batch_size: int = 128
     optimizer: str = "sgd"  # "sgd" (paper) or "adam"
     lr: float = 0.05
@@ -110,7 +111,8 @@ def train_point(
             net.parameters(), lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay, nesterov=True
         )
     steps_per_epoch = max(1, m // cfg.batch_size)
-    budget = StepBudget(int(round(cfg.epochs * steps_per_epoch)), cfg.time_budget_s, 2 * cfg.warmup_steps)
+    max_steps = cfg.steps if cfg.steps > 0 else int(round(cfg.epochs * steps_per_epoch))
+    budget = StepBudget(max_steps, cfg.time_budget_s, 2 * cfg.warmup_steps)
 
     def lr_at(step):
         if step < cfg.warmup_steps:

@@ -73,9 +73,11 @@ impl Sums {
         for (a, b) in self.pck_hits.iter_mut().zip(o.pck_hits) {
             *a += b;
         }
-        for k in 0..K {
-            self.keypoint_oks_sum[k] += o.keypoint_oks_sum[k];
-            self.keypoint_visible[k] += o.keypoint_visible[k];
+        for (a, b) in self.keypoint_oks_sum.iter_mut().zip(o.keypoint_oks_sum) {
+            *a += b;
+        }
+        for (a, b) in self.keypoint_visible.iter_mut().zip(o.keypoint_visible) {
+            *a += b;
         }
     }
 
@@ -247,9 +249,9 @@ impl MetricsReport {
             (String::new(), String::new(), String::new()),
             ("per-keypoint OKS".into(), "3D".into(), "2D".into()),
         ];
-        for k in 0..K {
+        for (k, name) in NAMES.iter().enumerate() {
             let pick = |v: &[KeypointOks]| cell(v.get(k).and_then(|x| x.oks), "");
-            rows.push((NAMES[k].into(), pick(&self.per_keypoint_oks_3d), pick(&self.per_keypoint_oks_2d)));
+            rows.push((name.to_string(), pick(&self.per_keypoint_oks_3d), pick(&self.per_keypoint_oks_2d)));
         }
         let mut out = format!("{:<24} {:>12} {:>12}\n", "metric", "3D", "2D");
         for (name, a, b) in rows {
@@ -270,8 +272,11 @@ mod tests {
         Box3d { center_x: 10.0, center_y: 0.0, center_z: 0.9, length, width, height, heading: 0.3 }
     }
 
+    /// Prediction (possibly missing), ground truth, visibility and box of one person.
+    type Labelled = (Vec<Option<[f64; 3]>>, Vec<[f64; 3]>, Vec<bool>, Box3d);
+
     /// Deterministic persons with varied errors, visibilities and a few missing predictions.
-    fn persons() -> Vec<(Vec<Option<[f64; 3]>>, Vec<[f64; 3]>, Vec<bool>, Box3d)> {
+    fn persons() -> Vec<Labelled> {
         (0..9)
             .map(|i| {
                 let gt: Vec<[f64; 3]> =

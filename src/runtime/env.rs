@@ -33,7 +33,10 @@ pub fn environment(lib: &Path) -> Result<ort::environment::Environment> {
             let builder = ort::init_from(lib).map_err(|e| {
                 format!("cannot load ONNX Runtime from {}: {e} (run `bash scripts/setup.sh`)", lib.display())
             })?;
-            builder.with_name("posefuse").build().map_err(|e| format!("cannot create the ONNX Runtime environment: {e}"))
+            builder
+                .with_name("posefuse")
+                .build()
+                .map_err(|e| format!("cannot create the ONNX Runtime environment: {e}"))
         })
         .clone()
         .map_err(Error::Runtime)

@@ -23,11 +23,11 @@ struct Loaded {
 
 /// Builder errors carry the (non-`Send`) builder; keep them inside this function.
 fn build_session(env: &ort::environment::Environment, io: &ModelIo, intra_threads: usize) -> ort::Result<Session> {
-    Ok(Session::builder(env)?
+    Session::builder(env)?
         .with_optimization_level(GraphOptimizationLevel::Level3)?
         .with_intra_threads(intra_threads)?
         .with_inter_threads(1)?
-        .commit_from_file(&io.path)?)
+        .commit_from_file(&io.path)
 }
 
 impl Models {
@@ -35,8 +35,9 @@ impl Models {
     pub fn load(env: &ort::environment::Environment, bundle: &Bundle, intra_threads: usize) -> Result<Models> {
         let load = |kind: ModelKind| -> Result<Loaded> {
             let io = bundle.io(kind).clone();
-            let session = build_session(env, &io, intra_threads.max(1))
-                .map_err(|e| Error::Bundle(format!("models.{}: {} does not load: {e}", kind.key(), io.path.display())))?;
+            let session = build_session(env, &io, intra_threads.max(1)).map_err(|e| {
+                Error::Bundle(format!("models.{}: {} does not load: {e}", kind.key(), io.path.display()))
+            })?;
             check_session(&session, &io, kind)?;
             Ok(Loaded { session, io, kind })
         };
@@ -129,7 +130,9 @@ fn check_side(
         match outlet.dtype() {
             ValueType::Tensor { ty, shape: got, .. } => {
                 if *ty != ort::value::TensorElementType::Float32 {
-                    return Err(Error::Bundle(format!("models.{key}.{side}.{name}: element type {ty:?}, expected float32")));
+                    return Err(Error::Bundle(format!(
+                        "models.{key}.{side}.{name}: element type {ty:?}, expected float32"
+                    )));
                 }
                 if !dims_agree(got, shape) {
                     return Err(Error::Bundle(format!(

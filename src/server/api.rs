@@ -63,8 +63,8 @@ pub struct PersonPose {
     pub mode_reason: String,
     /// LiDAR points found inside the (margin-grown) 3D box.
     pub num_points: usize,
-    /// The 2D box the camera crop was taken from (the request's, or the projected 3D box);
-    /// absent when the person is outside the camera view.
+    /// The person's 2D box: the request's, or the projection of the 3D box (the camera crop is
+    /// taken from it when the camera runs); absent when the person is outside the camera view.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub box_2d: Option<Box2d>,
     /// The 13 keypoints in the project's order.

@@ -110,16 +110,15 @@ pub fn load_fixtures(data: &Path) -> Result<Vec<(String, Frame)>> {
     for f in files {
         let name = f.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
         let bytes = std::fs::read(&f).map_err(|e| Error::Io(format!("{}: {e}", f.display())))?;
-        let value: serde_json::Value = super::http::parse_json(&bytes)
-            .map_err(|e| Error::Io(format!("{}: {e}", f.display())))?;
+        let value: serde_json::Value =
+            super::http::parse_json(&bytes).map_err(|e| Error::Io(format!("{}: {e}", f.display())))?;
         let items = match value {
             serde_json::Value::Array(v) => v,
             other => vec![other],
         };
         let many = items.len() > 1;
         for (i, v) in items.into_iter().enumerate() {
-            let frame: Frame =
-                super::http::from_value(v).map_err(|e| Error::Io(format!("{}: {e}", f.display())))?;
+            let frame: Frame = super::http::from_value(v).map_err(|e| Error::Io(format!("{}: {e}", f.display())))?;
             frames.push((if many { format!("{name}[{i}]") } else { name.clone() }, frame));
         }
     }

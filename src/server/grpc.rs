@@ -75,7 +75,7 @@ fn mode_to_proto(m: Mode) -> proto::Mode {
 /// A gRPC request as a frame plus the raw image bytes.
 pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<Vec<u8>>)> {
     let c = r.calibration.ok_or_else(|| Error::field("calibration", "required"))?;
-    if r.points.len() % 12 != 0 {
+    if !r.points.len().is_multiple_of(12) {
         return Err(Error::field(
             "points",
             format!("{} bytes is not a whole number of f32 xyz triples (12 bytes each)", r.points.len()),
@@ -87,7 +87,12 @@ pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<Vec<u
         let b = p.box_3d.ok_or_else(|| Error::field(format!("persons[{i}].box_3d"), "required"))?;
         persons.push(Person {
             id: p.id,
-            box_2d: p.box_2d.map(|b| Box2d { center_x: b.center_x, center_y: b.center_y, width: b.width, height: b.height }),
+            box_2d: p.box_2d.map(|b| Box2d {
+                center_x: b.center_x,
+                center_y: b.center_y,
+                width: b.width,
+                height: b.height,
+            }),
             box_3d: Box3d {
                 center_x: b.center_x,
                 center_y: b.center_y,
@@ -103,7 +108,12 @@ pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<Vec<u
     let frame = Frame {
         frame_id: (!r.frame_id.is_empty()).then_some(r.frame_id),
         image: None,
-        calibration: CameraCalibration { intrinsic: c.intrinsic, extrinsic: c.extrinsic, width: c.width, height: c.height },
+        calibration: CameraCalibration {
+            intrinsic: c.intrinsic,
+            extrinsic: c.extrinsic,
+            width: c.width,
+            height: c.height,
+        },
         points: Points::Flat(flat),
         persons,
         mode: mode_from_proto(r.mode)?,
@@ -178,7 +188,7 @@ impl Posefuse for GrpcService {
         request: Request<proto::PredictRequest>,
     ) -> std::result::Result<Response<proto::PredictResponse>, Status> {
         let r = predict_message(&self.state, request.into_inner()).await;
-        count("Predict", r.as_ref().map_or_else(|e| super::errors::grpc_code(e), |_| tonic::Code::Ok));
+        count("Predict", r.as_ref().map_or_else(super::errors::grpc_code, |_| tonic::Code::Ok));
         r.map(Response::new).map_err(|e| grpc_status(&e))
     }
 

@@ -42,7 +42,8 @@ pub fn router(state: AppState) -> Router {
 }
 
 async fn count_requests(req: Request, next: Next) -> Response {
-    let route = req.extensions().get::<MatchedPath>().map_or_else(|| "unmatched".to_string(), |m| m.as_str().to_string());
+    let route =
+        req.extensions().get::<MatchedPath>().map_or_else(|| "unmatched".to_string(), |m| m.as_str().to_string());
     let resp = next.run(req).await;
     metrics::counter!("posefuse_http_requests_total", "route" => route, "status" => resp.status().as_u16().to_string())
         .increment(1);
@@ -101,8 +102,17 @@ fn path_error(e: serde_path_to_error::Error<serde_json::Error>) -> Error {
     let inner = e.into_inner();
     match inner.classify() {
         serde_json::error::Category::Data => {
-            let field = if path == "." || path.is_empty() { "body".to_string() } else { path };
-            Error::field(field, inner.to_string())
+            let msg = inner.to_string();
+            // serde reports a missing key at its parent; name the key itself.
+            let key = msg.strip_prefix("missing field `").and_then(|rest| rest.split('`').next());
+            let parent = if path == "." || path.is_empty() { None } else { Some(path) };
+            let field = match (parent, key) {
+                (Some(p), Some(k)) => format!("{p}.{k}"),
+                (None, Some(k)) => k.to_string(),
+                (Some(p), None) => p,
+                (None, None) => "body".to_string(),
+            };
+            Error::field(field, msg)
         }
         _ => Error::Malformed(format!("invalid JSON: {inner}")),
     }
@@ -226,6 +236,9 @@ where
                 if line.iter().all(u8::is_ascii_whitespace) {
                     continue;
                 }
+                if line.len() > limit {
+                    return Some((Err(Error::PayloadTooLarge { limit }), r));
+                }
                 return Some((Ok(line), r));
             }
             if r.buf.len() > limit {
@@ -237,7 +250,11 @@ where
                 if r.buf.iter().all(u8::is_ascii_whitespace) {
                     return None;
                 }
-                return Some((Ok(std::mem::take(&mut r.buf)), r));
+                let line = std::mem::take(&mut r.buf);
+                if line.len() > limit {
+                    return Some((Err(Error::PayloadTooLarge { limit }), r));
+                }
+                return Some((Ok(line), r));
             }
             match r.stream.next().await {
                 Some(Ok(chunk)) => {
@@ -316,7 +333,7 @@ async fn healthz() -> Json<HealthResponse> {
 async fn readyz(State(state): State<AppState>) -> (StatusCode, Json<HealthResponse>) {
     let status = if state.shutting_down.load(Ordering::SeqCst) {
         "shutting_down"
-    } else if state.predictor.runtime().is_ready() {
+    } else if state.ready.load(Ordering::SeqCst) {
         "ready"
     } else {
         "warming_up"
@@ -359,4 +376,35 @@ pub fn openapi_doc() -> utoipa::openapi::OpenApi {
 #[utoipa::path(get, path = "/openapi.json", responses((status = 200, description = "OpenAPI document")))]
 async fn openapi() -> Json<utoipa::openapi::OpenApi> {
     Json(openapi_doc())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn field_of<T: DeserializeOwned + std::fmt::Debug>(json: &str) -> (String, String) {
+        match parse_json::<T>(json.as_bytes()) {
+            Err(e) => (e.code().to_string(), e.field_name().unwrap_or("").to_string()),
+            Ok(v) => panic!("parsed: {v:?}"),
+        }
+    }
+
+    #[test]
+    fn json_errors_name_the_field() {
+        let (code, field) = field_of::<crate::frame::Box2d>(r#"{"center_x": 1, "center_y": 2, "width": 3}"#);
+        assert_eq!((code.as_str(), field.as_str()), ("invalid_field", "height"));
+        let (_, field) = field_of::<Vec<crate::frame::Box2d>>(
+            r#"[{"center_x": 1, "center_y": 2, "width": 3, "height": 4}, {"center_x": "a"}]"#,
+        );
+        assert_eq!(field, "[1].center_x");
+        let (_, field) = field_of::<Vec<crate::frame::Box2d>>(
+            r#"[{"center_x": 1, "center_y": 2, "width": 3, "height": 4, "x": 0}]"#,
+        );
+        assert_eq!(field, "[0].x");
+        let (code, _) = field_of::<crate::frame::Box2d>("{oops");
+        assert_eq!(code, "malformed_request");
+        let (code, _) =
+            field_of::<crate::frame::Box2d>(r#"{"center_x": 1, "center_y": 2, "width": 3, "height": 4} trailing"#);
+        assert_eq!(code, "malformed_request");
+    }
 }

@@ -162,6 +162,8 @@ pub struct AppState {
     pub request_timeout: Duration,
     pub batch_concurrency: usize,
     pub shutting_down: Arc<AtomicBool>,
+    /// Warm-up done and the gRPC health status published (what /readyz reports).
+    pub ready: Arc<AtomicBool>,
     pub prometheus: Option<metrics_exporter_prometheus::PrometheusHandle>,
 }
 
@@ -189,6 +191,7 @@ impl App {
             request_timeout: config.request_timeout,
             batch_concurrency: config.batch_concurrency.max(1),
             shutting_down: Arc::new(AtomicBool::new(false)),
+            ready: Arc::new(AtomicBool::new(false)),
             prometheus: metrics::install(),
         };
         Ok(App { state })
@@ -200,10 +203,15 @@ impl App {
     }
 
     /// Serves on `listener` until `shutdown` completes, then finishes in-flight requests.
-    pub async fn serve(self, listener: tokio::net::TcpListener, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<()> {
+    pub async fn serve(
+        self,
+        listener: tokio::net::TcpListener,
+        shutdown: impl Future<Output = ()> + Send + 'static,
+    ) -> Result<()> {
         let state = self.state.clone();
         let (reporter, health_service) = tonic_health::server::health_reporter();
-        let grpc_name = <grpc::proto::posefuse_server::PosefuseServer<grpc::GrpcService> as tonic::server::NamedService>::NAME;
+        let grpc_name =
+            <grpc::proto::posefuse_server::PosefuseServer<grpc::GrpcService> as tonic::server::NamedService>::NAME;
         reporter.set_service_status("", tonic_health::ServingStatus::NotServing).await;
         reporter.set_service_status(grpc_name, tonic_health::ServingStatus::NotServing).await;
         let http_router = http::router(state.clone());
@@ -220,13 +228,15 @@ impl App {
             }
         }));
         let ready_watch = {
-            let (runtime, reporter) = (state.predictor.runtime().clone(), reporter.clone());
+            let (runtime, reporter, ready) = (state.predictor.runtime().clone(), reporter.clone(), state.ready.clone());
             tokio::spawn(async move {
                 while !runtime.is_ready() {
                     tokio::time::sleep(Duration::from_millis(10)).await;
                 }
                 reporter.set_service_status("", tonic_health::ServingStatus::Serving).await;
                 reporter.set_service_status(grpc_name, tonic_health::ServingStatus::Serving).await;
+                // Only now, so that /readyz and gRPC health never disagree.
+                ready.store(true, Ordering::SeqCst);
             })
         };
         let flag = state.shutting_down.clone();
@@ -242,6 +252,11 @@ impl App {
         };
         let addr = listener.local_addr().ok();
         tracing::info!(?addr, "serving HTTP and gRPC");
+        // Responses go out as several small writes (headers, body, gRPC trailers); Nagle's
+        // algorithm would hold them back for the peer's delayed ACK (~40 ms).
+        let listener = axum::serve::ListenerExt::tap_io(listener, |tcp: &mut tokio::net::TcpStream| {
+            let _ = tcp.set_nodelay(true);
+        });
         let served = axum::serve(listener, app).with_graceful_shutdown(on_shutdown).await;
         ready_watch.abort();
         let runtime = state.predictor.runtime().clone();
@@ -262,7 +277,11 @@ fn is_grpc(req: &Request) -> bool {
 
 /// Starts a server on `listener` and serves until `shutdown` completes: the library entry point
 /// used by `posefuse serve` and by the integration tests.
-pub async fn run(config: ServerConfig, listener: tokio::net::TcpListener, shutdown: impl Future<Output = ()> + Send + 'static) -> Result<()> {
+pub async fn run(
+    config: ServerConfig,
+    listener: tokio::net::TcpListener,
+    shutdown: impl Future<Output = ()> + Send + 'static,
+) -> Result<()> {
     let app = tokio::task::spawn_blocking(move || App::start(&config))
         .await
         .map_err(|e| Error::Runtime(format!("start-up task failed: {e}")))??;
@@ -353,7 +372,8 @@ pub fn eval_command(a: EvalArgs) -> anyhow::Result<()> {
         }
     }
     let predictor = cli_predictor(&a.runtime)?;
-    let report = tokio_runtime()?.block_on(eval::evaluate_frames(&predictor, &a.data, a.mode.map(Into::into), frames))?;
+    let report =
+        tokio_runtime()?.block_on(eval::evaluate_frames(&predictor, &a.data, a.mode.map(Into::into), frames))?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {

@@ -15,8 +15,8 @@ use crate::frame::{Box2d, Box3d, Frame, RequestedMode};
 use crate::geometry::{box2d_from_points, BoxFrame, Camera};
 use crate::keypoints::{K, NAMES, WAYMO_TYPES};
 use crate::pipeline::{
-    crop_rgb, decode_heatmaps, fused_points, keypoints_to_pixels, keypoints_to_vehicle, lidar_points, lift,
-    normalize, prepare_person, sample_features, smooth_heatmaps, PipelineConfig, PointInput,
+    crop_rgb, decode_heatmaps, fused_points, keypoints_to_pixels, keypoints_to_vehicle, lidar_points, lift, normalize,
+    prepare_person, sample_features, smooth_heatmaps, PipelineConfig, PointInput,
 };
 use crate::runtime::{Bundle, JobOutput, ModelKind, Runtime};
 
@@ -104,7 +104,8 @@ impl Predictor {
         .map_err(|e| Error::Runtime(format!("pre-processing task failed: {e}")))?;
         let (plan, frame_id) = plan?;
         let camera = &plan.camera;
-        let results = futures::future::try_join_all(plan.persons.into_iter().map(|p| self.run_person(p, camera))).await?;
+        let results =
+            futures::future::try_join_all(plan.persons.into_iter().map(|p| self.run_person(p, camera))).await?;
         let mut timings =
             Timings { decode_ms: ms(plan.decode), preprocess_ms: ms(plan.preprocess), ..Timings::default() };
         let mut persons = Vec::with_capacity(results.len());
@@ -251,7 +252,7 @@ fn decode_image(frame: &Frame, raw_image: Option<Vec<u8>>) -> Result<ImageState>
         },
     };
     let img = match image::load_from_memory(&bytes) {
-        Ok(img) => img.to_rgb8(),
+        Ok(img) => img.into_rgb8(),
         Err(e) => return Ok(ImageState::Undecodable(format!("image is not a decodable JPEG or PNG: {e}"))),
     };
     let c = &frame.calibration;
@@ -270,8 +271,40 @@ fn decode_image(frame: &Frame, raw_image: Option<Vec<u8>>) -> Result<ImageState>
     Ok(ImageState::Decoded(img))
 }
 
+/// Persons per frame: each one scans every point of the frame, so the work is bounded here.
+pub const MAX_PERSONS: usize = 256;
+
+/// A 2D box may extend past the image (a person close to the camera) but not without bound: the
+/// crop allocates its full side.
+const MAX_BOX_IMAGE_RATIO: f64 = 2.0;
+
+fn check_box_size(b: &Box2d, field: &str, width: u32, height: u32) -> Result<()> {
+    if b.width > MAX_BOX_IMAGE_RATIO * width as f64 || b.height > MAX_BOX_IMAGE_RATIO * height as f64 {
+        return Err(Error::field(
+            field,
+            format!("{}x{} px is more than {MAX_BOX_IMAGE_RATIO} times the {width}x{height} image", b.width, b.height),
+        ));
+    }
+    Ok(())
+}
+
+/// The part of a box inside the image (for derived boxes of persons close to the camera).
+fn clip_to_image(b: Box2d, width: u32, height: u32) -> Box2d {
+    let x0 = (b.center_x - b.width / 2.0).max(0.0);
+    let x1 = (b.center_x + b.width / 2.0).min(width as f64);
+    let y0 = (b.center_y - b.height / 2.0).max(0.0);
+    let y1 = (b.center_y + b.height / 2.0).min(height as f64);
+    Box2d { center_x: (x0 + x1) / 2.0, center_y: (y0 + y1) / 2.0, width: x1 - x0, height: y1 - y0 }
+}
+
 fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -> Result<FramePlan> {
     frame.validate()?;
+    if frame.persons.len() > MAX_PERSONS {
+        return Err(Error::field(
+            "persons",
+            format!("{} persons; at most {MAX_PERSONS} per frame", frame.persons.len()),
+        ));
+    }
     let camera = Camera::from_calibration(&frame.calibration)?;
     let t0 = Instant::now();
     let points = frame.points.decode()?;
@@ -292,9 +325,17 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
                         format!("lies entirely outside the {}x{} image", camera.width, camera.height),
                     ));
                 }
+                check_box_size(b, &format!("{field}.box_2d"), camera.width, camera.height)?;
                 Some(*b)
             }
-            None => projected_box(&camera, &person.box_3d),
+            None => projected_box(&camera, &person.box_3d).map(|b| {
+                let (w, h) = (camera.width, camera.height);
+                if check_box_size(&b, "", w, h).is_ok() {
+                    b
+                } else {
+                    clip_to_image(b, w, h)
+                }
+            }),
         };
         let prepared = prepare_person(None, Some(&camera), &points, &person.box_3d, box_2d.as_ref(), cfg);
         let num_points = prepared.points.len();
@@ -396,6 +437,16 @@ mod tests {
         assert!(projected_box(&camera(), &b3(10.0, 20.0)).is_none());
         // Straddling the image plane (a corner behind the camera).
         assert!(projected_box(&camera(), &b3(0.2, 0.0)).is_none());
+    }
+
+    #[test]
+    fn oversized_boxes_are_refused_or_clipped() {
+        let b = Box2d { center_x: 50.0, center_y: 40.0, width: 201.0, height: 10.0 };
+        let e = check_box_size(&b, "persons[0].box_2d", 100, 80).unwrap_err();
+        assert_eq!(e.field_name(), Some("persons[0].box_2d"));
+        assert!(check_box_size(&Box2d { width: 200.0, ..b }, "f", 100, 80).is_ok());
+        let c = clip_to_image(Box2d { center_x: 90.0, center_y: 40.0, width: 40.0, height: 200.0 }, 100, 80);
+        assert_eq!((c.center_x, c.center_y, c.width, c.height), (85.0, 40.0, 30.0, 80.0));
     }
 
     #[test]

@@ -89,13 +89,15 @@ pub fn simulate_command(args: SimulateArgs) -> anyhow::Result<()> {
     let (mut produced, mut next_frame, mut fixtures, mut frames) = (0usize, 0usize, 0usize, 0usize);
     let near = near_px(&cfg);
     while produced < args.count {
+        // About two samples per frame: small runs do not simulate a whole batch for nothing.
+        let n_frames = (args.count - produced).div_ceil(2).clamp(2, BATCH_FRAMES);
         let batch: Vec<anyhow::Result<FrameResult>> = pool.install(|| {
-            (next_frame..next_frame + BATCH_FRAMES)
+            (next_frame..next_frame + n_frames)
                 .into_par_iter()
                 .map(|i| Ok(simulate_frame(args.seed, i, i < requests, &cfg, args.points_cap, near)?))
                 .collect()
         });
-        next_frame += BATCH_FRAMES;
+        next_frame += n_frames;
         for r in batch {
             let mut r = r?;
             let take = r.samples.len().min(args.count - produced);

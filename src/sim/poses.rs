@@ -143,9 +143,14 @@ fn gait(phi: f64, run: f64, stride: f64) -> Pose {
     p
 }
 
-/// Samples the pose of one person (body frame).
+/// Samples the activity and pose of one person (body frame).
 pub fn sample_person<R: Rng>(rng: &mut R, anthro: Anthro) -> PersonModel {
     let activity = Activity::sample(rng);
+    pose_person(rng, anthro, activity)
+}
+
+/// Samples a pose of the given activity (body frame).
+pub fn pose_person<R: Rng>(rng: &mut R, anthro: Anthro, activity: Activity) -> PersonModel {
     let a = &anthro;
     let h = a.height;
     let phi = rng.random_range(0.0..std::f64::consts::TAU);

@@ -9,8 +9,9 @@ pub enum Shape {
     Capsule { a: V3, b: V3, r: f64 },
     /// `inv` maps an offset from `c` to unit-sphere coordinates (rows = axis / semi-axis).
     Ellipsoid { c: V3, axes: [V3; 3], semi: [f64; 3], inv: [V3; 3] },
-    /// Box with centre `c`, half sizes `half` along its own x (heading), y, z axes.
-    Box { c: V3, half: V3, yaw: f64 },
+    /// Box with centre `c`, half sizes `half` along its own x (heading), y, z axes; `cs` is
+    /// (cos, sin) of `yaw`, kept because every ray needs it.
+    Box { c: V3, half: V3, yaw: f64, cs: [f64; 2] },
 }
 
 impl Shape {
@@ -26,7 +27,7 @@ impl Shape {
 
     /// Axis-aligned (in its own yawed frame) box.
     pub fn cuboid(c: V3, size: V3, yaw: f64) -> Shape {
-        Shape::Box { c, half: scale(size, 0.5), yaw }
+        Shape::Box { c, half: scale(size, 0.5), yaw, cs: [yaw.cos(), yaw.sin()] }
     }
 
     /// Rotates about z by `yaw` then translates by `t` (body frame → vehicle frame).
@@ -36,7 +37,7 @@ impl Shape {
         match *self {
             Shape::Capsule { a, b, r: rad } => Shape::capsule(p(a), p(b), rad),
             Shape::Ellipsoid { c, axes, semi, .. } => Shape::ellipsoid(p(c), axes.map(r), semi),
-            Shape::Box { c, half, yaw: y0 } => Shape::Box { c: p(c), half, yaw: y0 + yaw },
+            Shape::Box { c, half, yaw: y0, .. } => Shape::cuboid(p(c), scale(half, 2.0), y0 + yaw),
         }
     }
 
@@ -60,8 +61,7 @@ impl Shape {
                 let h = (0..3).map(|i| (semi[i] * dot(axes[i], u)).powi(2)).sum::<f64>().sqrt();
                 (dot(c, u) - h, dot(c, u) + h)
             }
-            Shape::Box { c, half, yaw } => {
-                let (s, co) = yaw.sin_cos();
+            Shape::Box { c, half, cs: [co, s], .. } => {
                 let ax = [[co, s, 0.0], [-s, co, 0.0], [0.0, 0.0, 1.0]];
                 let h: f64 = (0..3).map(|i| (half[i] * dot(ax[i], u)).abs()).sum();
                 (dot(c, u) - h, dot(c, u) + h)
@@ -106,7 +106,7 @@ impl Shape {
                     out.push(madd(c, axes[2], s * semi[2]));
                 }
             }
-            Shape::Box { c, half, yaw } => {
+            Shape::Box { c, half, yaw, .. } => {
                 for i in 0..8 {
                     let q = [
                         if i & 1 == 0 { -half[0] } else { half[0] },
@@ -143,8 +143,7 @@ impl Shape {
                 let n = add(add(scale(inv[0], q[0]), scale(inv[1], q[1])), scale(inv[2], q[2]));
                 Some((t, normalize(n)))
             }
-            Shape::Box { c, half, yaw } => {
-                let (s, co) = yaw.sin_cos();
+            Shape::Box { c, half, cs: [co, s], .. } => {
                 let oc = sub(o, c);
                 let lo = [co * oc[0] + s * oc[1], -s * oc[0] + co * oc[1], oc[2]];
                 let ld = [co * d[0] + s * d[1], -s * d[0] + co * d[1], d[2]];

@@ -8,7 +8,7 @@
 
 use image::RgbImage;
 
-use super::math::{dot, hash, normalize, sub, unit, V3};
+use super::math::{dot, hash, normalize, sub, V3};
 use super::scene::{Scene, GROUND};
 use super::world::World;
 use crate::geometry::Camera;
@@ -32,8 +32,13 @@ impl Region {
 
     /// Image-pixel coordinates of the centre of output pixel (j, i).
     pub fn center(&self, j: f64, i: f64) -> [f64; 2] {
+        self.point(j + 0.5, i + 0.5)
+    }
+
+    /// Image-pixel coordinates of the continuous output position (j, i).
+    pub fn point(&self, j: f64, i: f64) -> [f64; 2] {
         let s = self.step as f64;
-        [self.x0 as f64 + s * (j + 0.5), self.y0 as f64 + s * (i + 0.5)]
+        [self.x0 as f64 + s * j, self.y0 as f64 + s * i]
     }
 }
 
@@ -66,7 +71,7 @@ impl RayGrid {
         let mut nodes = Vec::with_capacity(nw * nh);
         for ni in 0..nh {
             for nj in 0..nw {
-                let [u, v] = region.center((nj * NODE) as f64, (ni * NODE) as f64);
+                let [u, v] = region.point((nj * NODE) as f64, (ni * NODE) as f64);
                 nodes.push(cam.undistort((u - cam.cu) / cam.fu, (v - cam.cv) / cam.fv).into());
             }
         }
@@ -77,7 +82,39 @@ impl RayGrid {
         self.origin
     }
 
-    /// Unit direction through output pixel (j, i) (fractional positions allowed).
+    /// The node values interpolated to row position `i` (one per node column).
+    pub fn row(&self, i: f64, out: &mut [[f64; 2]]) {
+        let gi = i / NODE as f64;
+        let ni = (gi.floor() as usize).min(self.nodes.len() / self.nw - 2);
+        let fi = gi - ni as f64;
+        let (top, bot) = (&self.nodes[ni * self.nw..(ni + 1) * self.nw], &self.nodes[(ni + 1) * self.nw..(ni + 2) * self.nw]);
+        for ((o, t), b) in out.iter_mut().zip(top).zip(bot) {
+            *o = [t[0] + (b[0] - t[0]) * fi, t[1] + (b[1] - t[1]) * fi];
+        }
+    }
+
+    /// [`RayGrid::dir`] from a row prepared by [`RayGrid::row`].
+    #[inline]
+    pub fn dir_in_row(&self, row: &[[f64; 2]], j: f64) -> V3 {
+        let gj = j / NODE as f64;
+        let nj = (gj.floor() as usize).min(self.nw - 2);
+        let fj = gj - nj as f64;
+        let (a, b) = (row[nj], row[nj + 1]);
+        self.direction([a[0] + (b[0] - a[0]) * fj, a[1] + (b[1] - a[1]) * fj])
+    }
+
+    #[inline]
+    fn direction(&self, uv: [f64; 2]) -> V3 {
+        let [ax, ay, az] = self.axes;
+        normalize([
+            ax[0] - ay[0] * uv[0] - az[0] * uv[1],
+            ax[1] - ay[1] * uv[0] - az[1] * uv[1],
+            ax[2] - ay[2] * uv[0] - az[2] * uv[1],
+        ])
+    }
+
+    /// Unit direction through the continuous output position (j, i); pixel (j, i)'s centre is
+    /// at (j + 0.5, i + 0.5).
     pub fn dir(&self, j: f64, i: f64) -> V3 {
         let (gj, gi) = (j / NODE as f64, i / NODE as f64);
         let (nj, ni) = ((gj.floor() as usize).min(self.nw - 2), (gi.floor() as usize).min(self.nodes.len() / self.nw - 2));
@@ -89,12 +126,7 @@ impl RayGrid {
             let bot = n(0, 1)[k] + (n(1, 1)[k] - n(0, 1)[k]) * fj;
             *item = top + (bot - top) * fi;
         }
-        let [ax, ay, az] = self.axes;
-        normalize([
-            ax[0] - ay[0] * uv[0] - az[0] * uv[1],
-            ax[1] - ay[1] * uv[0] - az[1] * uv[1],
-            ax[2] - ay[2] * uv[0] - az[2] * uv[1],
-        ])
+        self.direction(uv)
     }
 }
 
@@ -145,6 +177,20 @@ pub fn shade(scene: &Scene, o: V3, d: V3, cands: &[u32]) -> ([f32; 3], u32) {
     }
 }
 
+const GAMMA_STEPS: usize = 4096;
+
+/// Linear [0, 1] → 8-bit level with gamma 2.2, tabulated over the square root of the linear
+/// value so that dark tones keep their resolution.
+fn gamma_table() -> &'static [f32; GAMMA_STEPS] {
+    static TABLE: std::sync::OnceLock<[f32; GAMMA_STEPS]> = std::sync::OnceLock::new();
+    TABLE.get_or_init(|| {
+        std::array::from_fn(|i| {
+            let r = i as f32 / (GAMMA_STEPS - 1) as f32;
+            (r * r).powf(1.0 / 2.2) * 255.0
+        })
+    })
+}
+
 /// Renders a region of the world's camera image.
 pub fn render(world: &World, region: Region) -> Rendered {
     let scene = &world.scene;
@@ -154,6 +200,8 @@ pub fn render(world: &World, region: Region) -> Rendered {
     let mut ids = vec![GROUND; w * h];
     let all: Vec<u32> = (0..scene.prims.len() as u32).collect();
     let o = rays.origin();
+    let row_len = rays.nw;
+    let mut row_nodes = vec![[0.0f64; 2]; row_len];
     const SUPER: usize = 64;
     for si in (0..h).step_by(SUPER) {
         for sj in (0..w).step_by(SUPER) {
@@ -164,8 +212,9 @@ pub fn render(world: &World, region: Region) -> Rendered {
                     let (tj1, ti1) = ((tj + TILE).min(w), (ti + TILE).min(h));
                     let cands = cone_candidates(scene, &rays, tj, ti, tj1, ti1, &coarse);
                     for i in ti..ti1 {
+                        rays.row(i as f64 + 0.5, &mut row_nodes);
                         for j in tj..tj1 {
-                            let d = rays.dir(j as f64 + 0.5, i as f64 + 0.5);
+                            let d = rays.dir_in_row(&row_nodes, j as f64 + 0.5);
                             let (c, id) = shade(scene, o, d, &cands);
                             lin[i * w + j] = c;
                             ids[i * w + j] = id;
@@ -195,15 +244,19 @@ pub fn render(world: &World, region: Region) -> Rendered {
         }
     }
     let sigma = look.noise / region.step as f32 * 6f32.sqrt();
+    let gamma = gamma_table();
     let mut image = RgbImage::new(region.w, region.h);
     for (k, (px, c)) in image.pixels_mut().zip(&lin).enumerate() {
         let (j, i) = ((k % w) as i64, (k / w) as i64);
         let (x, y) = (region.x0 + j * region.step as i64, region.y0 + i * region.step as i64);
+        let hsh = hash(&[look.seed, x as u64, y as u64]);
         for ch in 0..3 {
-            let v = (c[ch] * look.exposure).clamp(0.0, 1.0).powf(1.0 / 2.2) * 255.0;
-            let hsh = hash(&[look.seed, x as u64, y as u64, ch as u64]);
-            let nz = (unit(hsh) + unit(hsh.rotate_left(29)) - 1.0) as f32 * sigma;
-            px.0[ch] = (v + nz).round().clamp(0.0, 255.0) as u8;
+            let lin = (c[ch] * look.exposure).clamp(0.0, 1.0);
+            let v = gamma[(lin.sqrt() * (GAMMA_STEPS - 1) as f32) as usize];
+            let h = hsh.rotate_left(21 * ch as u32);
+            // Triangular noise from two 16-bit uniforms of the pixel's hash.
+            let nz = (((h & 0xffff) + ((h >> 16) & 0xffff)) as f32 / 65535.0 - 1.0) * sigma;
+            px.0[ch] = (v + nz + 0.5).clamp(0.0, 255.0) as u8;
         }
     }
     Rendered { image, ids, region }

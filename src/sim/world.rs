@@ -110,6 +110,17 @@ fn sample_range<R: Rng>(rng: &mut R) -> f64 {
     r.clamp(3.0, 60.0)
 }
 
+/// The camera without mounting or lens variation (tests and examples).
+pub fn nominal_camera() -> Result<Camera> {
+    let t = [1.58, -0.04, 1.92];
+    Camera::from_calibration(&CameraCalibration {
+        intrinsic: vec![2040.0, 2040.0, 960.0, 640.0, 0.05, -0.005, 0.0, 0.0, 0.0],
+        extrinsic: vec![1.0, 0.0, 0.0, t[0], 0.0, 1.0, 0.0, t[1], 0.0, 0.0, 1.0, t[2], 0.0, 0.0, 0.0, 1.0],
+        width: 1920,
+        height: 1280,
+    })
+}
+
 fn sample_camera<R: Rng>(rng: &mut R) -> Result<Camera> {
     let (yaw, pitch, roll) = (
         rng.random_range(-3f64..3.0).to_radians(),
@@ -258,7 +269,8 @@ pub fn box_around(scene: &Scene, prims: &[u32], heading: f64, margin: f64) -> Bo
     }
 }
 
-fn add_car<R: Rng>(rng: &mut R, scene: &mut Scene, x: f64, y: f64, yaw: f64) {
+/// Adds a parked car (body, cabin, wheels) centred at (x, y).
+pub fn add_car<R: Rng>(rng: &mut R, scene: &mut Scene, x: f64, y: f64, yaw: f64) {
     let obj = scene.add_object(ObjectKind::Car);
     let body = scene.add_material(plain(cloth(rng)));
     let glass = scene.add_material(plain(srgb(30, 38, 48)));
@@ -378,23 +390,34 @@ fn place_person<R: Rng>(
         }
         feet.take(x, y, fr);
         let heading = rng.random_range(0.0..std::f64::consts::TAU);
-        let pos = [x, y, 0.0];
-        let object = scene.add_object(kind);
-        let body_prims = add_person(rng, scene, object, &model, pos, heading);
-        let keypoints = model.skeleton.keypoints.map(|k| add(rot_z(k, heading), pos));
-        let box3d = box_around(scene, &body_prims, heading, BOX3D_MARGIN);
-        return Some(PlacedPerson {
-            object,
-            tolerance: Skeleton::visibility_tolerance(&model.anthro),
-            model,
-            position: pos,
-            heading,
-            keypoints,
-            body_prims,
-            box3d,
-        });
+        return Some(put_person(rng, scene, model, [x, y, 0.0], heading, kind));
     }
     None
+}
+
+/// Puts a posed person into the scene at `pos` (on the ground) facing `heading`.
+pub fn put_person<R: Rng>(
+    rng: &mut R,
+    scene: &mut Scene,
+    model: PersonModel,
+    pos: V3,
+    heading: f64,
+    kind: ObjectKind,
+) -> PlacedPerson {
+    let object = scene.add_object(kind);
+    let body_prims = add_person(rng, scene, object, &model, pos, heading);
+    let keypoints = model.skeleton.keypoints.map(|k| add(rot_z(k, heading), pos));
+    let box3d = box_around(scene, &body_prims, heading, BOX3D_MARGIN);
+    PlacedPerson {
+        object,
+        tolerance: Skeleton::visibility_tolerance(&model.anthro),
+        model,
+        position: pos,
+        heading,
+        keypoints,
+        body_prims,
+        box3d,
+    }
 }
 
 /// Samples a frame with `n_labelled` labelled pedestrians (fewer only if placement fails).

@@ -1,0 +1,176 @@
+//! Server latency against raw ONNX Runtime, in one run: a single-person fusion request on the
+//! default bundle sent sequentially (HTTP JSON and gRPC), and the camera + point-fusion sessions
+//! run directly on the same model inputs. `cargo bench --bench server`; results in BENCHMARKS.md.
+
+#[path = "../tests/server_support/mod.rs"]
+mod server_support;
+
+use std::time::{Duration, Instant};
+
+use posefuse::keypoints::K;
+use posefuse::pipeline::{crop_rgb, fused_points, normalize, prepare_person, sample_features, smooth_heatmaps};
+use posefuse::runtime::{env, Bundle, ModelKind, Models};
+use posefuse::server::grpc::proto::posefuse_client::PosefuseClient;
+use posefuse::server::grpc::proto::{self};
+use server_support::*;
+
+fn percentile(sorted: &[Duration], p: f64) -> Duration {
+    sorted[((sorted.len() as f64 - 1.0) * p).round() as usize]
+}
+
+fn summary(name: &str, mut d: Vec<Duration>) -> (Duration, Duration) {
+    d.sort();
+    let (p50, p99) = (percentile(&d, 0.5), percentile(&d, 0.99));
+    println!("{name:<34} n={:<5} p50 {:>8.3} ms   p99 {:>8.3} ms", d.len(), ms(p50), ms(p99));
+    (p50, p99)
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+/// The model inputs the server builds for the frame's person, through the same pipeline calls.
+fn model_inputs(models: &mut Models, bundle: &Bundle) -> (Vec<f32>, Vec<f32>) {
+    let frame = fusion_frame();
+    let cfg = bundle.config();
+    let png = image_png(&[frame.persons[0].box_2d.unwrap()]);
+    let img = image::load_from_memory(&png).unwrap().to_rgb8();
+    let p = &frame.persons[0];
+    let prepared =
+        prepare_person(None, Some(&camera()), &frame.points.decode().unwrap(), &p.box_3d, p.box_2d.as_ref(), cfg);
+    let image_input = normalize(&crop_rgb(&img, prepared.crop.as_ref().unwrap()), cfg);
+    let input = prepared.input.unwrap();
+    let hm = models.run(ModelKind::Camera, 1, &image_input).unwrap();
+    let h = cfg.heatmap_size as usize;
+    let smoothed = smooth_heatmaps(&hm, K, h, h, cfg);
+    let features = sample_features(&smoothed, K, h, h, &input.uv, cfg.image_size);
+    (image_input, fused_points(&input.xyz, &features, K))
+}
+
+fn main() {
+    let n: usize = std::env::var("POSEFUSE_BENCH_N").ok().and_then(|v| v.parse().ok()).unwrap_or(1000);
+    let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
+    let cfg = config();
+    println!(
+        "bundle {} | workers {} | intra-op threads {} | {n} sequential requests",
+        cfg.model_dir.display(),
+        cfg.runtime.workers,
+        cfg.runtime.intra_threads
+    );
+
+    // Raw ONNX Runtime: own sessions, same thread settings, same inputs.
+    let bundle = Bundle::load(&cfg.model_dir).unwrap();
+    let ort_env = env::environment(&env::resolve_lib(None)).unwrap();
+    let mut models = Models::load(&ort_env, &bundle, cfg.runtime.intra_threads).unwrap();
+    let (image_input, fused) = model_inputs(&mut models, &bundle);
+    for _ in 0..50 {
+        models.run(ModelKind::Camera, 1, &image_input).unwrap();
+        models.run(ModelKind::PointFusion, 1, &fused).unwrap();
+    }
+
+    let server = rt.block_on(start(cfg));
+    let client = reqwest::Client::new();
+    let body = serde_json::to_vec(&fusion_frame()).unwrap();
+    let frame = fusion_frame();
+    let grpc_req = proto::PredictRequest {
+        frame_id: String::new(),
+        image: image_png(&[frame.persons[0].box_2d.unwrap()]),
+        calibration: Some(proto::Calibration {
+            intrinsic: frame.calibration.intrinsic.clone(),
+            extrinsic: frame.calibration.extrinsic.clone(),
+            width: frame.calibration.width,
+            height: frame.calibration.height,
+        }),
+        points: frame.points.decode().unwrap().iter().flatten().flat_map(|v| v.to_le_bytes()).collect(),
+        persons: frame
+            .persons
+            .iter()
+            .map(|p| proto::Person {
+                id: p.id.clone(),
+                box_2d: p.box_2d.map(|b| proto::Box2d {
+                    center_x: b.center_x,
+                    center_y: b.center_y,
+                    width: b.width,
+                    height: b.height,
+                }),
+                box_3d: Some(proto::Box3d {
+                    center_x: p.box_3d.center_x,
+                    center_y: p.box_3d.center_y,
+                    center_z: p.box_3d.center_z,
+                    length: p.box_3d.length,
+                    width: p.box_3d.width,
+                    height: p.box_3d.height,
+                    heading: p.box_3d.heading,
+                }),
+            })
+            .collect(),
+        mode: proto::Mode::Auto as i32,
+    };
+    let mut grpc = rt.block_on(PosefuseClient::connect(server.url(""))).unwrap();
+
+    let server_times = std::cell::RefCell::new(Vec::new());
+    let http_once = || {
+        let (elapsed, bytes) = rt.block_on(async {
+            let t = Instant::now();
+            let r = client
+                .post(server.url("/v1/poses"))
+                .header("content-type", "application/json")
+                .body(body.clone())
+                .send()
+                .await
+                .unwrap();
+            assert_eq!(r.status(), 200);
+            let bytes = r.bytes().await.unwrap();
+            (t.elapsed(), bytes)
+        });
+        let resp: posefuse::server::api::PoseResponse = serde_json::from_slice(&bytes).unwrap();
+        server_times.borrow_mut().push(resp.timings);
+        elapsed
+    };
+    let mut grpc_once = || {
+        rt.block_on(async {
+            let t = Instant::now();
+            grpc.predict(grpc_req.clone()).await.unwrap();
+            t.elapsed()
+        })
+    };
+    let raw_once = |models: &mut Models| {
+        let t = Instant::now();
+        models.run(ModelKind::Camera, 1, &image_input).unwrap();
+        models.run(ModelKind::PointFusion, 1, &fused).unwrap();
+        t.elapsed()
+    };
+    for _ in 0..50 {
+        http_once();
+        grpc_once();
+    }
+    // Interleave so that machine load drifts hit all three alike.
+    let (mut raw, mut http, mut g) = (Vec::new(), Vec::new(), Vec::new());
+    for _ in 0..n {
+        raw.push(raw_once(&mut models));
+        http.push(http_once());
+        g.push(grpc_once());
+    }
+    println!("request body {} bytes (640x480 PNG, 300 points)", body.len());
+    let (raw50, raw99) = summary("raw ONNX Runtime (camera + fusion)", raw);
+    let (h50, h99) = summary("HTTP POST /v1/poses", http);
+    let (g50, g99) = summary("gRPC Predict", g);
+    let t = server_times.borrow();
+    let mean = |f: fn(&posefuse::server::api::Timings) -> f64| t.iter().map(f).sum::<f64>() / t.len() as f64;
+    println!(
+        "server-side means (HTTP): decode {:.3} ms, pre/post {:.3} ms, queue {:.3} ms, inference {:.3} ms, total {:.3} ms",
+        mean(|x| x.decode_ms),
+        mean(|x| x.preprocess_ms),
+        mean(|x| x.queue_ms),
+        mean(|x| x.inference_ms),
+        mean(|x| x.total_ms)
+    );
+    println!(
+        "ratio to raw: HTTP p50 {:.3} p99 {:.3} | gRPC p50 {:.3} p99 {:.3}",
+        ms(h50) / ms(raw50),
+        ms(h99) / ms(raw99),
+        ms(g50) / ms(raw50),
+        ms(g99) / ms(raw99)
+    );
+    rt.block_on(server.shutdown()).unwrap();
+}

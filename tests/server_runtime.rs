@@ -1,0 +1,52 @@
+//! The runtime's queue: jobs queued together run as one batch, and batching does not change a
+//! job's output.
+
+mod server_support;
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use posefuse::runtime::{Bundle, ModelKind, Runtime, RuntimeConfig};
+use server_support::model_dir;
+
+fn input(len: usize, seed: f32) -> Vec<f32> {
+    (0..len).map(|i| ((i as f32 * 0.37 + seed).sin()) * 0.5).collect()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn queued_jobs_form_one_batch_with_unchanged_outputs() {
+    let bundle = Arc::new(Bundle::load(&model_dir()).unwrap());
+    let cfg = RuntimeConfig { max_batch: 8, ..RuntimeConfig::default() };
+    let rt = Arc::new(tokio::task::spawn_blocking(move || Runtime::start(bundle, &cfg)).await.unwrap().unwrap());
+    assert!(rt.wait_ready(Duration::from_secs(60)));
+    let len = rt.bundle().io(ModelKind::PointLidar).input_len();
+
+    // Alone: a batch of one.
+    let alone = rt.infer(ModelKind::PointLidar, input(len, 1.0)).await.unwrap();
+    assert_eq!(alone.batch, 1);
+    assert_eq!(alone.data.len(), rt.bundle().io(ModelKind::PointLidar).output_len());
+
+    // Five jobs queued while the worker is paused run together.
+    let pause = rt.pause();
+    let jobs: Vec<_> = (0..5)
+        .map(|i| {
+            let rt = rt.clone();
+            tokio::spawn(async move { rt.infer(ModelKind::PointLidar, input(len, 1.0 + i as f32)).await })
+        })
+        .collect();
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    drop(pause);
+    let mut outs = Vec::new();
+    for j in jobs {
+        outs.push(j.await.unwrap().unwrap());
+    }
+    // The worker may have taken the first job before pausing; the rest share a batch.
+    assert!(outs[1..].iter().all(|o| o.batch >= 4), "{:?}", outs.iter().map(|o| o.batch).collect::<Vec<_>>());
+    let max_diff = outs[0].data.iter().zip(&alone.data).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
+    assert!(max_diff < 1e-4, "batched output differs by {max_diff}");
+    assert!(outs.iter().all(|o| o.queue >= Duration::from_millis(100)));
+
+    // Wrong input sizes are refused before queueing.
+    let e = rt.infer(ModelKind::Camera, vec![0.0; 3]).await.unwrap_err();
+    assert!(e.to_string().contains("camera"), "{e}");
+}

@@ -1,0 +1,258 @@
+//! `posefuse simulate` output: byte-identical reruns, shard keys and shapes as docs/DATA.md
+//! documents them, shard crops and point inputs identical to what the pipeline makes from the
+//! request fixtures, and 2D labels that are projections of the 3D keypoints up to the label noise.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::OnceLock;
+
+use ndarray::ArrayD;
+use ndarray_npy::NpzReader;
+use posefuse::frame::{Box3d, CameraCalibration, Frame};
+use posefuse::geometry::{BoxFrame, Camera};
+use posefuse::pipeline::{crop_rgb, from_local, prepare_person, CropTransform, PipelineConfig};
+use posefuse::sim::{simulate_command, SimulateArgs};
+
+const S: u32 = 64;
+const COUNT: usize = 7;
+
+fn args(out: &Path) -> SimulateArgs {
+    SimulateArgs {
+        count: COUNT,
+        seed: 11,
+        out: out.to_path_buf(),
+        image_size: S,
+        preview: true,
+        requests: Some(1),
+        points_cap: 300,
+        jobs: Some(2),
+    }
+}
+
+fn run_once() -> &'static PathBuf {
+    static DIR: OnceLock<PathBuf> = OnceLock::new();
+    DIR.get_or_init(|| {
+        let dir = tempfile::tempdir().unwrap().keep();
+        simulate_command(args(&dir)).unwrap();
+        dir
+    })
+}
+
+fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
+    let mut out = BTreeMap::new();
+    let mut stack = vec![dir.to_path_buf()];
+    while let Some(d) = stack.pop() {
+        for e in std::fs::read_dir(&d).unwrap() {
+            let p = e.unwrap().path();
+            if p.is_dir() {
+                stack.push(p);
+            } else {
+                out.insert(p.strip_prefix(dir).unwrap().display().to_string(), std::fs::read(&p).unwrap());
+            }
+        }
+    }
+    out
+}
+
+#[test]
+fn two_runs_are_byte_identical() {
+    let a = run_once();
+    let b = tempfile::tempdir().unwrap();
+    simulate_command(args(b.path())).unwrap();
+    let (fa, fb) = (files(a), files(b.path()));
+    assert!(fa.contains_key("dataset.json") && fa.contains_key("shards/shard-00000.npz"));
+    assert!(fa.contains_key("requests/frame-000000.json") && fa.contains_key("preview/sheet-000.png"));
+    assert_eq!(fa.keys().collect::<Vec<_>>(), fb.keys().collect::<Vec<_>>());
+    for (name, bytes) in &fa {
+        assert!(bytes == &fb[name], "{name} differs between runs");
+    }
+}
+
+/// The keys of the shard table in docs/DATA.md with their dtypes and shapes.
+fn documented_keys() -> Vec<(String, String, String)> {
+    let doc = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/DATA.md")).unwrap();
+    let table = doc.split("## Shard keys").nth(1).unwrap();
+    table
+        .lines()
+        .filter(|l| l.starts_with("| `"))
+        .map(|l| {
+            let cols: Vec<&str> = l.split('|').map(str::trim).collect();
+            (cols[1].trim_matches('`').to_string(), cols[2].to_string(), cols[3].to_string())
+        })
+        .collect()
+}
+
+struct Shard {
+    npz: NpzReader<std::fs::File>,
+}
+
+impl Shard {
+    fn f32(&mut self, k: &str) -> ArrayD<f32> {
+        self.npz.by_name(&format!("{k}.npy")).unwrap()
+    }
+    fn u8(&mut self, k: &str) -> ArrayD<u8> {
+        self.npz.by_name(&format!("{k}.npy")).unwrap()
+    }
+    fn i32(&mut self, k: &str) -> ArrayD<i32> {
+        self.npz.by_name(&format!("{k}.npy")).unwrap()
+    }
+}
+
+fn open_shard(dir: &Path) -> Shard {
+    Shard { npz: NpzReader::new(std::fs::File::open(dir.join("shards/shard-00000.npz")).unwrap()).unwrap() }
+}
+
+#[test]
+fn shards_have_the_documented_keys_dtypes_and_shapes() {
+    let dir = run_once();
+    let meta: serde_json::Value = serde_json::from_slice(&std::fs::read(dir.join("dataset.json")).unwrap()).unwrap();
+    let cfg: PipelineConfig = serde_json::from_value(meta["preprocessing"].clone()).unwrap();
+    assert_eq!(cfg, PipelineConfig::with_image_size(S));
+    assert_eq!(meta["count"], COUNT);
+    assert_eq!(meta["seed"], 11);
+    let cap = meta["points_cap"].as_u64().unwrap() as usize;
+    assert_eq!(cap, 300);
+    let mut sh = open_shard(dir);
+    let mut names = sh.npz.names().unwrap();
+    names.sort();
+    let docs = documented_keys();
+    let mut want: Vec<String> = docs.iter().map(|d| format!("{}.npy", d.0)).collect();
+    want.sort();
+    assert_eq!(names, want);
+    let (m, s, n, k) = (COUNT, S as usize, cfg.num_points as usize, 13usize);
+    for (key, dtype, shape) in &docs {
+        let dims: Vec<usize> = shape
+            .trim_matches(|c| c == '[' || c == ']')
+            .split(',')
+            .map(|d| match d.trim() {
+                "M" => m,
+                "S" => s,
+                "P" => cap,
+                "N" => n,
+                "K" => k,
+                other => other.parse().unwrap(),
+            })
+            .collect();
+        let got = match dtype.as_str() {
+            "uint8" => sh.u8(key).shape().to_vec(),
+            "int32" => sh.i32(key).shape().to_vec(),
+            "float32" => sh.f32(key).shape().to_vec(),
+            other => panic!("undocumented dtype {other}"),
+        };
+        assert_eq!(got, dims, "{key}");
+    }
+    // Rows past points_count are zero; counts respect the cap.
+    let count = sh.i32("points_count");
+    let xyz = sh.f32("points_xyz");
+    for i in 0..m {
+        let c = count[[i]] as usize;
+        assert!(c <= cap);
+        assert!((c..cap).all(|r| (0..3).all(|a| xyz[[i, r, a]] == 0.0)));
+    }
+    assert!(count.iter().any(|&c| c > 0));
+}
+
+fn camera_of(sh: &mut Shard, i: usize) -> Camera {
+    let (intr, extr, wh) = (sh.f32("intrinsic"), sh.f32("extrinsic"), sh.i32("image_size_wh"));
+    Camera::from_calibration(&CameraCalibration {
+        intrinsic: (0..9).map(|j| intr[[i, j]] as f64).collect(),
+        extrinsic: (0..16).map(|j| extr[[i, j]] as f64).collect(),
+        width: wh[[i, 0]] as u32,
+        height: wh[[i, 1]] as u32,
+    })
+    .unwrap()
+}
+
+#[test]
+fn labels_are_projections_of_the_3d_keypoints_up_to_the_label_noise() {
+    let dir = run_once();
+    let cfg = PipelineConfig::with_image_size(S);
+    let mut sh = open_shard(dir);
+    let (kp2d, true2d, kp3d, kpv, box2d, box3d, crop) = (
+        sh.f32("kp2d"),
+        sh.f32("kp2d_image_true"),
+        sh.f32("kp3d"),
+        sh.f32("kp3d_vehicle"),
+        sh.f32("box2d"),
+        sh.f32("box3d"),
+        sh.f32("crop"),
+    );
+    let mut max_noise: f64 = 0.0;
+    for i in 0..COUNT {
+        let cam = camera_of(&mut sh, i);
+        let t = CropTransform { x0: crop[[i, 0]] as f64, y0: crop[[i, 1]] as f64, scale: crop[[i, 2]] as f64, size: S };
+        let sigma = (0.015 * box2d[[i, 3]] as f64).min(4.0);
+        let b = BoxFrame::new(&Box3d {
+            center_x: box3d[[i, 0]] as f64,
+            center_y: box3d[[i, 1]] as f64,
+            center_z: box3d[[i, 2]] as f64,
+            length: box3d[[i, 3]] as f64,
+            width: box3d[[i, 4]] as f64,
+            height: box3d[[i, 5]] as f64,
+            heading: box3d[[i, 6]] as f64,
+        });
+        for k in 0..13 {
+            let v = [kpv[[i, k, 0]] as f64, kpv[[i, k, 1]] as f64, kpv[[i, k, 2]] as f64];
+            let back = from_local(&b, [kp3d[[i, k, 0]] as f64, kp3d[[i, k, 1]] as f64, kp3d[[i, k, 2]] as f64], &cfg);
+            assert!((0..3).all(|a| (back[a] - v[a]).abs() < 1e-3), "kp3d is not kp3d_vehicle in the box frame");
+            // The keypoint is inside the 3D box.
+            assert!(b.contains(v, 1e-3), "sample {i} keypoint {k} outside its 3D box");
+            let pr = cam.project(v);
+            assert!(pr.in_front);
+            let tr = [true2d[[i, k, 0]] as f64, true2d[[i, k, 1]] as f64];
+            assert!((pr.uv[0] - tr[0]).abs() < 0.05 && (pr.uv[1] - tr[1]).abs() < 0.05, "{:?} vs {tr:?}", pr.uv);
+            let lab = t.to_image([kp2d[[i, k, 0]] as f64, kp2d[[i, k, 1]] as f64]);
+            let d = ((lab[0] - tr[0]).powi(2) + (lab[1] - tr[1]).powi(2)).sqrt();
+            assert!(d <= 5.0 * sigma + 0.01, "sample {i} kp {k}: label {d:.2} px off with sigma {sigma:.2}");
+            max_noise = max_noise.max(d);
+        }
+    }
+    assert!(max_noise > 0.1, "labels carry no annotation noise");
+}
+
+#[test]
+fn fixture_frames_give_the_server_the_same_crops_and_points_as_the_shards() {
+    let dir = run_once();
+    let cfg = PipelineConfig::with_image_size(S);
+    let frame: Frame = serde_json::from_slice(&std::fs::read(dir.join("requests/frame-000000.json")).unwrap()).unwrap();
+    frame.validate().unwrap();
+    use base64::Engine;
+    let jpeg = base64::engine::general_purpose::STANDARD.decode(frame.image.as_ref().unwrap()).unwrap();
+    let image = image::load_from_memory(&jpeg).unwrap().to_rgb8();
+    assert_eq!((image.width(), image.height()), (1920, 1280));
+    let cam = Camera::from_calibration(&frame.calibration).unwrap();
+    let points = frame.points.decode().unwrap();
+    let mut sh = open_shard(dir);
+    let (img, fidx, serve_xyz, serve_uv) = (sh.u8("image"), sh.i32("frame_index"), sh.f32("serve_xyz"), sh.f32("serve_uv"));
+    let rows: Vec<usize> = (0..COUNT).filter(|&i| fidx[[i]] == 0).collect();
+    assert_eq!(rows.len(), frame.persons.len());
+    for (row, person) in rows.into_iter().zip(&frame.persons) {
+        let b2 = person.box_2d.unwrap();
+        let crop = crop_rgb(&image, &CropTransform::for_box(&b2, &cfg));
+        let shard_crop: Vec<u8> = img.slice(ndarray::s![row, .., .., ..]).iter().copied().collect();
+        assert!(crop.as_raw() == &shard_crop, "shard crop of person {} differs from the server's", person.id);
+        let prep = prepare_person(Some(&image), Some(&cam), &points, &person.box_3d, Some(&b2), &cfg);
+        let input = prep.input.expect("the person has points");
+        for (r, (x, u)) in input.xyz.iter().zip(&input.uv).enumerate() {
+            for a in 0..3 {
+                assert_eq!(serve_xyz[[row, r, a]].to_bits(), x[a].to_bits());
+            }
+            for a in 0..2 {
+                assert_eq!(serve_uv[[row, r, a]].to_bits(), u[a].to_bits());
+            }
+        }
+        let gt = person.ground_truth.as_ref().unwrap();
+        assert_eq!(gt.keypoints_3d.as_ref().unwrap().xyz.len(), 13);
+    }
+}
+
+#[test]
+fn unusable_arguments_are_refused() {
+    let dir = tempfile::tempdir().unwrap();
+    let mut a = args(dir.path());
+    a.image_size = 30;
+    assert!(simulate_command(a).unwrap_err().to_string().contains("--image-size"));
+    let mut a = args(dir.path());
+    a.count = 0;
+    assert!(simulate_command(a).is_err());
+}

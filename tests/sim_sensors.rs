@@ -1,0 +1,196 @@
+//! The simulator's sensors agree with each other: LiDAR returns land on the pixels of the surface
+//! they hit, occlusion labels agree with what the renderer shows, and camera rays match the
+//! calibration.
+
+use posefuse::geometry::Camera;
+use posefuse::sim::body::Anthro;
+use posefuse::sim::dataset::frame_rng;
+use posefuse::sim::labels::{box_2d, keypoint_visible};
+use posefuse::sim::lidar::{inclinations, scan};
+use posefuse::sim::math::{norm, normalize, sub};
+use posefuse::sim::poses::{pose_person, Activity};
+use posefuse::sim::render::{render, RayGrid, Region, Rendered};
+use posefuse::sim::scene::{Ground, ObjectKind, Scene, GROUND};
+use posefuse::sim::body::Part;
+use posefuse::sim::raycast::Shape;
+use posefuse::sim::scene::{Material, Pattern};
+use posefuse::sim::world::{nominal_camera, put_person, sample_world, Look, World, LIDAR_ORIGIN};
+
+/// The region of the image around a person's 2D box (clipped), coarse enough to stay small.
+fn region_around(world: &World, b: &posefuse::frame::Box2d) -> Region {
+    let cam = &world.camera;
+    let m = 10.0;
+    let x0 = (b.center_x - b.width / 2.0 - m).max(0.0).floor() as i64;
+    let y0 = (b.center_y - b.height / 2.0 - m).max(0.0).floor() as i64;
+    let x1 = ((b.center_x + b.width / 2.0 + m).ceil() as i64).min(cam.width as i64);
+    let y1 = ((b.center_y + b.height / 2.0 + m).ceil() as i64).min(cam.height as i64);
+    let step = ((x1 - x0).max(y1 - y0) / 300 + 1) as u32;
+    Region { x0, y0, w: ((x1 - x0) as u32).div_ceil(step), h: ((y1 - y0) as u32).div_ceil(step), step }
+}
+
+/// The id at an image pixel and whether its 3×3 output neighbourhood shows one object only.
+fn id_at(r: &Rendered, uv: [f64; 2]) -> Option<(u32, bool)> {
+    let g = &r.region;
+    let j = ((uv[0] - g.x0 as f64) / g.step as f64).floor() as i64;
+    let i = ((uv[1] - g.y0 as f64) / g.step as f64).floor() as i64;
+    if j < 1 || i < 1 || j + 1 >= g.w as i64 || i + 1 >= g.h as i64 {
+        return None;
+    }
+    let id = r.ids[(i * g.w as i64 + j) as usize];
+    let same = (-1..=1).all(|di| (-1..=1).all(|dj| r.ids[((i + di) * g.w as i64 + j + dj) as usize] == id));
+    Some((id, same))
+}
+
+#[test]
+fn lidar_returns_land_on_the_rendered_surface_they_hit() {
+    let (mut eligible, mut agree, mut person_hits) = (0usize, 0usize, 0usize);
+    for seed in 0..3u64 {
+        let mut rng = frame_rng(1000 + seed, 0);
+        let world = sample_world(&mut rng, 2).unwrap();
+        let returns = scan(&world, &mut rng);
+        let cam = &world.camera;
+        for p in &world.persons {
+            let Some(b) = box_2d(&world, p) else { continue };
+            let rendered = render(&world, region_around(&world, &b));
+            for r in &returns {
+                let x = [r.xyz[0] as f64, r.xyz[1] as f64, r.xyz[2] as f64];
+                let pr = cam.project(x);
+                if !pr.in_front {
+                    continue;
+                }
+                // Seen from the camera? (The LiDAR sits elsewhere, so some returns are hidden.)
+                let o = cam.position();
+                let dist = norm(sub(x, o));
+                let hit = world.scene.cast_all(o, normalize(sub(x, o)), dist + 1.0);
+                if hit.is_none_or(|h| h.t < dist - 0.08) {
+                    continue;
+                }
+                let Some((id, homogeneous)) = id_at(&rendered, pr.uv) else { continue };
+                if !homogeneous {
+                    continue;
+                }
+                eligible += 1;
+                if id == r.object {
+                    agree += 1;
+                    if r.object == p.object {
+                        person_hits += 1;
+                    }
+                }
+            }
+        }
+    }
+    assert!(eligible > 300 && person_hits > 50, "too few checkable returns: {eligible} ({person_hits} on persons)");
+    let frac = agree as f64 / eligible as f64;
+    assert!(frac > 0.98, "only {agree}/{eligible} returns project onto the object they hit");
+}
+
+#[test]
+fn visibility_flags_agree_with_the_rendered_image() {
+    let (mut checked_visible, mut visible_ok, mut hidden_by_other) = (0usize, 0usize, 0usize);
+    for seed in 0..4u64 {
+        let mut rng = frame_rng(2000 + seed, 0);
+        let world = sample_world(&mut rng, 3).unwrap();
+        for p in &world.persons {
+            let Some(b) = box_2d(&world, p) else { continue };
+            let rendered = render(&world, region_around(&world, &b));
+            for k in 0..13 {
+                let pr = world.camera.project(p.keypoints[k]);
+                let Some((id, homogeneous)) = id_at(&rendered, pr.uv) else { continue };
+                let vis = keypoint_visible(&world, p, k);
+                if vis {
+                    checked_visible += 1;
+                    visible_ok += usize::from(id == p.object);
+                } else if homogeneous && id != p.object && id != GROUND {
+                    hidden_by_other += 1;
+                }
+                if homogeneous && id != p.object && id != GROUND {
+                    assert!(!vis, "keypoint {k} is labelled visible but object {id} covers its pixel");
+                }
+            }
+        }
+    }
+    assert!(checked_visible > 40, "{checked_visible}");
+    assert!(visible_ok as f64 >= 0.97 * checked_visible as f64, "{visible_ok}/{checked_visible}");
+    let _ = hidden_by_other;
+}
+
+fn empty_world() -> World {
+    let scene = Scene::new(Ground { road_half: 6.0, asphalt: [0.1; 3], sidewalk: [0.3; 3], crosswalk: None, seed: 1 });
+    World {
+        scene,
+        camera: nominal_camera().unwrap(),
+        persons: Vec::new(),
+        look: Look { exposure: 1.0, noise: 0.0, blur: 0, seed: 0 },
+        lidar_origin: LIDAR_ORIGIN,
+    }
+}
+
+fn standing(seed: u64) -> posefuse::sim::poses::PersonModel {
+    let mut rng = frame_rng(seed, 7);
+    pose_person(&mut rng, Anthro::new(1.75, 1.0, |_| 1.0), Activity::Standing)
+}
+
+#[test]
+fn self_occlusion_follows_the_viewpoint() {
+    let mut rng = frame_rng(3, 3);
+    // Facing the camera (heading π: the person looks back along −x toward the vehicle).
+    let mut w = empty_world();
+    let p = put_person(&mut rng, &mut w.scene, standing(1), [12.0, 0.0, 0.0], std::f64::consts::PI, ObjectKind::Person { label: Some(0) });
+    let front: Vec<bool> = (0..13).map(|k| keypoint_visible(&w, &p, k)).collect();
+    assert!(front[0] && front[1] && front[2] && front[7] && front[8], "front view: {front:?}");
+    // Facing away: the nose is behind the head.
+    let mut w = empty_world();
+    let p = put_person(&mut rng, &mut w.scene, standing(1), [12.0, 0.0, 0.0], 0.0, ObjectKind::Person { label: Some(0) });
+    let back: Vec<bool> = (0..13).map(|k| keypoint_visible(&w, &p, k)).collect();
+    assert!(!back[0] && back[1] && back[2], "back view: {back:?}");
+    // Left side toward the camera (heading +90°: facing +y, its left points to −x).
+    let mut w = empty_world();
+    let p = put_person(&mut rng, &mut w.scene, standing(1), [12.0, 0.0, 0.0], std::f64::consts::FRAC_PI_2, ObjectKind::Person { label: Some(0) });
+    let side: Vec<bool> = (0..13).map(|k| keypoint_visible(&w, &p, k)).collect();
+    assert!(side[1] && !side[2] && side[7] && !side[8], "side view: {side:?}");
+}
+
+#[test]
+fn a_wall_in_front_hides_the_legs_only() {
+    let mut rng = frame_rng(4, 4);
+    let mut w = empty_world();
+    let p = put_person(&mut rng, &mut w.scene, standing(2), [14.0, 0.0, 0.0], std::f64::consts::PI, ObjectKind::Person { label: Some(0) });
+    // A 1 m high wall 3 m in front of the person.
+    let wall = w.scene.add_object(ObjectKind::Clutter);
+    let m = w.scene.add_material(Material { base: [0.5; 3], alt: [0.5; 3], pattern: Pattern::Plain });
+    w.scene.add_prim(Shape::cuboid([11.0, 0.0, 0.5], [0.4, 3.0, 1.0], 0.0), wall, Part::Thing, m);
+    let v: Vec<bool> = (0..13).map(|k| keypoint_visible(&w, &p, k)).collect();
+    assert!(v[0] && v[1] && v[2], "head and shoulders stay visible: {v:?}");
+    assert!(!v[9] && !v[10] && !v[11] && !v[12], "knees and ankles are hidden: {v:?}");
+    // The wall's returns are in front of the person's in the LiDAR too.
+    w.persons.push(p);
+    let pts = scan(&w, &mut rng);
+    assert!(pts.iter().any(|r| r.object != GROUND && r.object != w.persons[0].object));
+    assert!(pts.iter().any(|r| r.object == w.persons[0].object));
+}
+
+#[test]
+fn interpolated_rays_match_the_camera_model() {
+    let mut rng = frame_rng(5, 5);
+    let world = sample_world(&mut rng, 1).unwrap();
+    let cam: &Camera = &world.camera;
+    let region = Region { x0: 37, y0: 11, w: 700, h: 500, step: 2 };
+    let grid = RayGrid::new(cam, &region);
+    for (j, i) in [(0.5, 0.5), (123.5, 77.5), (699.5, 499.5), (350.25, 260.75)] {
+        let d = grid.dir(j, i);
+        let want = cam.ray(region.center(j - 0.5, i - 0.5));
+        let err = norm(sub(d, want));
+        assert!(err < 2e-6, "pixel ({j}, {i}): {err}");
+    }
+}
+
+#[test]
+fn beams_span_the_waymo_field_of_view_densest_near_the_horizon() {
+    let inc = inclinations().map(f64::to_degrees);
+    assert!((inc[0] - 2.4).abs() < 1e-9 && (inc[63] + 17.6).abs() < 1e-9);
+    let gaps: Vec<f64> = inc.windows(2).map(|w| w[0] - w[1]).collect();
+    assert!(gaps.iter().all(|g| *g > 0.0));
+    let near_horizon = gaps[15..22].iter().sum::<f64>() / 7.0;
+    let bottom = gaps[56..].iter().sum::<f64>() / 7.0;
+    assert!(bottom > 2.0 * near_horizon, "{near_horizon} vs {bottom}");
+}
