@@ -8,7 +8,7 @@ mod server_support;
 use std::time::{Duration, Instant};
 
 use posefuse::keypoints::K;
-use posefuse::pipeline::{crop_rgb, fused_points, normalize, prepare_person, sample_features, smooth_heatmaps};
+use posefuse::pipeline::{crop_rgb, fused_points, normalize, prepare_person, smoothed_features};
 use posefuse::runtime::{env, Bundle, ModelKind, Models};
 use posefuse::server::grpc::proto::posefuse_client::PosefuseClient;
 use posefuse::server::grpc::proto::{self};
@@ -42,13 +42,15 @@ fn model_inputs(models: &mut Models, bundle: &Bundle) -> (Vec<f32>, Vec<f32>) {
     let input = prepared.input.unwrap();
     let hm = models.run(ModelKind::Camera, 1, &image_input).unwrap();
     let h = cfg.heatmap_size as usize;
-    let smoothed = smooth_heatmaps(&hm, K, h, h, cfg);
-    let features = sample_features(&smoothed, K, h, h, &input.uv, cfg.image_size);
+    let features = smoothed_features(&hm, K, h, h, &input.uv, cfg);
     (image_input, fused_points(&input.xyz, &features, K))
 }
 
 fn main() {
-    let n: usize = std::env::var("POSEFUSE_BENCH_N").ok().and_then(|v| v.parse().ok()).unwrap_or(1000);
+    // `cargo test --all-targets` runs benches without `--bench`: a short smoke run keeps the suite fast
+    let full = std::env::args().any(|a| a == "--bench");
+    let n: usize =
+        std::env::var("POSEFUSE_BENCH_N").ok().and_then(|v| v.parse().ok()).unwrap_or(if full { 1000 } else { 20 });
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
     let cfg = config();
     println!(

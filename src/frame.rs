@@ -158,7 +158,7 @@ impl Points {
                 bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
             }
         };
-        if flat.len() % 3 != 0 {
+        if !flat.len().is_multiple_of(3) {
             return Err(Error::field(
                 "points",
                 format!("{} numbers is not a multiple of 3 (x, y, z per point)", flat.len()),

@@ -53,6 +53,15 @@ impl CropTransform {
 pub fn crop_rgb(image: &RgbImage, t: &CropTransform) -> RgbImage {
     let s = t.size;
     let side = t.side();
+    let mut out = RgbImage::new(s, s);
+    // A window far larger than the image (a corrupt box) would need a huge padded copy; nothing
+    // of the image survives such a reduction anyway.
+    let limit = 16.0 * (image.width().max(image.height()) as f64).max(1.0);
+    let (w, h) = (image.width() as f64, image.height() as f64);
+    let misses = t.x0 >= w || t.y0 >= h || t.x0 + side <= 0.0 || t.y0 + side <= 0.0;
+    if !(t.x0.is_finite() && t.y0.is_finite() && side.is_finite()) || side > limit || side <= 0.0 || misses {
+        return out;
+    }
     // a box filter reads half a destination pixel (1/(2·scale) source pixels) around the window
     let margin = (1.0 / t.scale).ceil() as i64 + 2;
     let ix0 = t.x0.floor() as i64 - margin;
@@ -60,7 +69,6 @@ pub fn crop_rgb(image: &RgbImage, t: &CropTransform) -> RgbImage {
     let ix1 = (t.x0 + side).ceil() as i64 + margin;
     let iy1 = (t.y0 + side).ceil() as i64 + margin;
     let (iw, ih) = (image.width() as i64, image.height() as i64);
-    let mut out = RgbImage::new(s, s);
     let mut dst = Image::new(s, s, PixelType::U8x3);
     let inside = ix0 >= 0 && iy0 >= 0 && ix1 <= iw && iy1 <= ih;
     let done = if inside {
@@ -203,6 +211,18 @@ mod tests {
         let near_edge = CropTransform { x0: 2.3, y0: 2.7, ..inside };
         let b = crop_rgb(&shifted, &near_edge);
         assert_eq!(a, b);
+    }
+
+    #[test]
+    fn absurd_windows_give_black_crops_without_panicking() {
+        let img = RgbImage::from_pixel(10, 10, image::Rgb([9, 9, 9]));
+        for t in [
+            CropTransform { x0: 0.0, y0: 0.0, scale: 1e-300, size: 8 },
+            CropTransform { x0: f64::NAN, y0: 0.0, scale: 1.0, size: 8 },
+            CropTransform { x0: 1e300, y0: -1e300, scale: 1.0, size: 8 },
+        ] {
+            assert!(crop_rgb(&img, &t).as_raw().iter().all(|&v| v == 0));
+        }
     }
 
     #[test]

@@ -1,6 +1,6 @@
 //! Frame → poses: the one path shared by HTTP, gRPC, `posefuse predict` and `posefuse eval`.
 //! Pre-processing is exactly the pipeline's (`prepare_person`, `crop_rgb`, `normalize`,
-//! `smooth_heatmaps`, `sample_features`, `fused_points`, `decode_heatmaps`, `lift`,
+//! `smoothed_features` (smoothing + sampling), `fused_points`, `decode_heatmaps`, `lift`,
 //! `keypoints_to_vehicle`, `keypoints_to_pixels`); this file only decides the mode and moves data.
 
 use std::sync::Arc;
@@ -16,7 +16,7 @@ use crate::geometry::{box2d_from_points, BoxFrame, Camera};
 use crate::keypoints::{K, NAMES, WAYMO_TYPES};
 use crate::pipeline::{
     crop_rgb, decode_heatmaps, fused_points, keypoints_to_pixels, keypoints_to_vehicle, lidar_points, lift, normalize,
-    prepare_person, sample_features, smooth_heatmaps, PipelineConfig, PointInput,
+    prepare_person, smoothed_features, PipelineConfig, PointInput,
 };
 use crate::runtime::{Bundle, JobOutput, ModelKind, Runtime};
 
@@ -163,8 +163,7 @@ impl Predictor {
             Mode::Fusion => {
                 let h = heatmaps.as_deref().ok_or_else(need_heatmaps)?;
                 let t0 = Instant::now();
-                let smoothed = smooth_heatmaps(h, K, hm, hm, cfg);
-                let features = sample_features(&smoothed, K, hm, hm, &p.input.uv, s);
+                let features = smoothed_features(h, K, hm, hm, &p.input.uv, cfg);
                 let fused = fused_points(&p.input.xyz, &features, K);
                 let scores = decode_heatmaps(h, K, hm, hm, s).into_iter().map(|(_, v)| v).collect();
                 times.preprocess += t0.elapsed();
