@@ -8,6 +8,7 @@ COMMANDS = {
     "export": "posefuse_train.export",
     "ablation": "posefuse_train.ablation",
     "backbones": "posefuse_train.backbones",
+    "report": "posefuse_train.report",
 }
 
 

@@ -58,7 +58,8 @@ def same_config(a: PipelineConfig, b: PipelineConfig) -> bool:
     """Equal up to f32 rounding (the Rust side stores mean/std as f32)."""
     da, db = a.to_dict(), b.to_dict()
     return da.keys() == db.keys() and all(
-        np.allclose(da[k], db[k], rtol=1e-6) if isinstance(da[k], (list, float)) else da[k] == db[k] for k in da
+        np.allclose(da[k], db[k], rtol=1e-6) if isinstance(da[k], (list, float)) else da[k] == db[k]
+        for k in da
     )
 
 
@@ -103,7 +104,9 @@ def main(argv=None):
     p = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--bundle", default="models/default")
     p.add_argument("--data", required=True)
-    p.add_argument("--fixtures-only", action="store_true", help="only persons of frames with a request fixture")
+    p.add_argument(
+        "--fixtures-only", action="store_true", help="only persons of frames with a request fixture"
+    )
     p.add_argument("--json", action="store_true")
     a = p.parse_args(argv)
     r = evaluate_bundle(Path(a.bundle), Path(a.data), a.fixtures_only)
@@ -114,7 +117,8 @@ def main(argv=None):
         for name, m in r["metrics"].items():
             print(
                 f"{name:8s} n={m['count_3d']:5d}  OKS/ACC@3D {100 * (m['oks_acc_3d'] or 0):6.2f}%  "
-                f"MPJPE {100 * (m['mpjpe_3d_m'] or 0):6.2f} cm  OKS/ACC@2D {100 * (m['oks_acc_2d'] or 0):6.2f}%"
+                f"MPJPE {100 * (m['mpjpe_3d_m'] or 0):6.2f} cm  "
+                f"OKS/ACC@2D {100 * (m['oks_acc_2d'] or 0):6.2f}%"
             )
     return 0
 

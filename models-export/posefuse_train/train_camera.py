@@ -22,7 +22,7 @@ from .losses import heatmap_loss, heatmap_targets
 
 @dataclass
 class TrainCameraConfig:
-    epochs: float = 4.0
+    epochs: float = 12.0
     batch_size: int = 64
     lr: float = 2e-3
     decay_at: tuple[float, ...] = (0.75, 0.92)  # fractions of the run; lr x0.1 at each

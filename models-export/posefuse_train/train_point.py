@@ -27,7 +27,7 @@ from .point_net import PointNet
 class TrainPointConfig:
     fusion: bool = True
     seg: bool = True
-    epochs: float = 8.0
+    epochs: float = 30.0
     steps: int = 0  # > 0: exactly this many steps (overrides epochs)
     batch_size: int = 128
     optimizer: str = "sgd"  # "sgd" (paper) or "adam"
@@ -39,7 +39,10 @@ class TrainPointConfig:
     seg_radius: float = 0.05  # positive radius r, in units of S
     w_pos: float = 20.0
     w_neg: float = 1.0
-    rotate_deg: float = 180.0  # uniform in [-x, x] about z; 180 = the paper's [0, 2 pi)
+    # Uniform in [-x, x] about z. The paper rotates by [0, 2 pi); here points are already in the
+    # heading-aligned box frame, and a full turn would throw the heading (and with it the
+    # left/right cue) away: on a pilot set 180 gave 39.8% OKS@3D against 62.3% for 20.
+    rotate_deg: float = 20.0
     time_budget_s: float = 0.0  # > 0: stop (with the schedule compressed) when this runs out
     seed: int = 0
 

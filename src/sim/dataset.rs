@@ -1,7 +1,8 @@
 //! One frame from world to outputs: LiDAR scan, labels, the pipeline's crops and point inputs
 //! (prepared samples), and the request fixture; plus the shard writer.
 //!
-//! Frames with a fixture render the full image, go through JPEG (quality 92) and crop from the
+//! Frames with a fixture render the full image (at image resolution inside the labelled persons'
+//! crop windows, at quarter resolution elsewhere), go through JPEG (quality 92) and crop from the
 //! decoded image, exactly as the server will. Training-only frames render just the crop window:
 //! at image resolution when the window is at most 2·S pixels wide (then through the same JPEG
 //! codec), otherwise one ray per step×step block with step = ceil(side / 2S), i.e. at least 2×2
@@ -135,6 +136,54 @@ pub fn render_crop(world: &World, t: &CropTransform) -> Result<RgbImage> {
     Ok(crop_rgb(&patch, &local))
 }
 
+/// Bilinear ×4 upsampling (pixel centres aligned) to `w`×`h`.
+fn upsample4(src: &RgbImage, w: u32, h: u32) -> RgbImage {
+    let (sw, sh) = (src.width() as i64, src.height() as i64);
+    let raw = src.as_raw();
+    // Source coordinate of output pixel x: (x + 0.5) / 4 − 0.5, in quarters: x − 1.5 → (x·2 − 3) / 8.
+    let taps = |x: i64, n: i64| {
+        let q = 2 * x - 3;
+        let i0 = q.div_euclid(8);
+        let f = q.rem_euclid(8) as u32;
+        (i0.clamp(0, n - 1) as usize, (i0 + 1).clamp(0, n - 1) as usize, f)
+    };
+    let cols: Vec<(usize, usize, u32)> = (0..w as i64).map(|x| taps(x, sw)).collect();
+    let mut out = RgbImage::new(w, h);
+    for (y, row) in out.as_mut().chunks_exact_mut(w as usize * 3).enumerate() {
+        let (r0, r1, fy) = taps(y as i64, sh);
+        for (x, px) in row.chunks_exact_mut(3).enumerate() {
+            let (c0, c1, fx) = cols[x];
+            for c in 0..3 {
+                let at = |r: usize, col: usize| raw[(r * sw as usize + col) * 3 + c] as u32;
+                let top = at(r0, c0) * (8 - fx) + at(r0, c1) * fx;
+                let bot = at(r1, c0) * (8 - fx) + at(r1, c1) * fx;
+                px[c] = ((top * (8 - fy) + bot * fy + 32) / 64) as u8;
+            }
+        }
+    }
+    out
+}
+
+/// The full request image: at image resolution inside the crop windows of the labelled persons
+/// (all the server will look at), elsewhere rendered at quarter resolution and upsampled.
+pub fn render_frame_image(world: &World, windows: &[CropTransform]) -> RgbImage {
+    let cam = &world.camera;
+    let (w, h) = (cam.width, cam.height);
+    let coarse = render(world, Region { x0: 0, y0: 0, w: w.div_ceil(4), h: h.div_ceil(4), step: 4 }).image;
+    let mut img = upsample4(&coarse, w, h);
+    for t in windows {
+        let side = t.side();
+        let (x0, y0) = (t.x0.floor().max(0.0) as i64, t.y0.floor().max(0.0) as i64);
+        let x1 = ((t.x0 + side).ceil() as i64 + 1).min(w as i64);
+        let y1 = ((t.y0 + side).ceil() as i64 + 1).min(h as i64);
+        if x1 > x0 && y1 > y0 {
+            let r = render(world, Region { x0, y0, w: (x1 - x0) as u32, h: (y1 - y0) as u32, step: 1 });
+            image::imageops::replace(&mut img, &r.image, x0, y0);
+        }
+    }
+    img
+}
+
 fn f32x<const N: usize>(v: [f64; N]) -> [f32; N] {
     v.map(|x| x as f32)
 }
@@ -155,23 +204,27 @@ pub fn simulate_frame(
     let points: Vec<[f32; 3]> = returns.iter().map(|r| r.xyz).collect();
     let cam = &world.camera;
     let calib = cam.to_calibration();
-    let full = if with_fixture {
-        let jpeg = encode_jpeg(&render(&world, Region::full(cam)).image)?;
-        Some((decode_jpeg(&jpeg)?, jpeg))
-    } else {
-        None
-    };
-    let mut out = FrameResult { index, samples: Vec::new(), stats: Vec::new(), fixture: None };
-    let mut fixture_persons = Vec::new();
+    let mut labelled = Vec::new();
     for (li, p) in world.persons.iter().enumerate() {
         let on_person: Vec<V3> = returns
             .iter()
             .filter(|r| r.object == p.object)
             .map(|r| [r.xyz[0] as f64, r.xyz[1] as f64, r.xyz[2] as f64])
             .collect();
-        let Some(labels) = label_person(&world, p, &on_person, &mut rng) else {
-            continue;
-        };
+        if let Some(labels) = label_person(&world, p, &on_person, &mut rng) {
+            labelled.push((li, p, labels, on_person.len()));
+        }
+    }
+    let full = if with_fixture {
+        let windows: Vec<CropTransform> = labelled.iter().map(|l| CropTransform::for_box(&l.2.box2d, cfg)).collect();
+        let jpeg = encode_jpeg(&render_frame_image(&world, &windows))?;
+        Some((decode_jpeg(&jpeg)?, jpeg))
+    } else {
+        None
+    };
+    let mut out = FrameResult { index, samples: Vec::new(), stats: Vec::new(), fixture: None };
+    let mut fixture_persons = Vec::new();
+    for (li, p, labels, on_person) in labelled {
         let prepared =
             prepare_person(full.as_ref().map(|f| &f.0), Some(cam), &points, &p.box3d, Some(&labels.box2d), cfg);
         let t = CropTransform::for_box(&labels.box2d, cfg);
@@ -180,7 +233,7 @@ pub fn simulate_frame(
             None => render_crop(&world, &t)?,
         };
         let sample = make_sample(&world, p, &labels, &prepared, &t, crop, cfg, points_cap, index, &calib);
-        out.stats.push(sample_stats(&sample, p, &labels, &prepared.points.model_uv, on_person.len(), &t, near_px));
+        out.stats.push(sample_stats(&sample, p, &labels, &prepared.points.model_uv, on_person, &t, near_px));
         out.samples.push(sample);
         if with_fixture {
             fixture_persons.push(Person {

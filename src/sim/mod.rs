@@ -88,6 +88,7 @@ pub fn simulate_command(args: SimulateArgs) -> anyhow::Result<()> {
     let mut preview: Vec<Sample> = Vec::new();
     let (mut produced, mut next_frame, mut fixtures, mut frames) = (0usize, 0usize, 0usize, 0usize);
     let near = near_px(&cfg);
+    let mut first_fixture: Option<String> = None;
     while produced < args.count {
         // About two samples per frame: small runs do not simulate a whole batch for nothing.
         let n_frames = (args.count - produced).div_ceil(2).clamp(2, BATCH_FRAMES);
@@ -112,6 +113,7 @@ pub fn simulate_command(args: SimulateArgs) -> anyhow::Result<()> {
                 let path = out.join("requests").join(format!("frame-{:06}.json", r.index));
                 std::fs::write(&path, serde_json::to_vec(&f)?).with_context(|| format!("writing {}", path.display()))?;
                 fixtures += 1;
+                first_fixture.get_or_insert_with(|| format!("frame-{:06}.json", r.index));
             }
             stats.append(&mut r.stats);
             for s in r.samples {
@@ -133,6 +135,10 @@ pub fn simulate_command(args: SimulateArgs) -> anyhow::Result<()> {
         std::fs::create_dir_all(&dir)?;
         let refs: Vec<&Sample> = preview.iter().collect();
         preview::sheet(&refs, cfg.image_size, 4).save(dir.join("sheet-000.png"))?;
+        if let Some(name) = first_fixture {
+            let frame: crate::frame::Frame = serde_json::from_slice(&std::fs::read(out.join("requests").join(&name))?)?;
+            preview::frame_overview(&frame)?.save(dir.join(name.replace(".json", ".png")))?;
+        }
     }
     let secs = started.elapsed().as_secs_f64();
     eprintln!(

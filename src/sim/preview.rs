@@ -87,3 +87,42 @@ pub fn sheet(samples: &[&Sample], s: u32, cols: u32) -> RgbImage {
     }
     img
 }
+
+/// A half-resolution view of a request fixture: the decoded image with the LiDAR points
+/// projected (coloured by height) and the persons' 2D boxes and ground-truth skeletons.
+pub fn frame_overview(frame: &crate::frame::Frame) -> crate::Result<RgbImage> {
+    use base64::Engine;
+    let bytes = base64::engine::general_purpose::STANDARD
+        .decode(frame.image.as_deref().unwrap_or_default())
+        .map_err(|e| crate::Error::Io(format!("fixture image: {e}")))?;
+    let full = super::dataset::decode_jpeg(&bytes)?;
+    let cam = crate::geometry::Camera::from_calibration(&frame.calibration)?;
+    let mut img = image::imageops::resize(&full, full.width() / 2, full.height() / 2, image::imageops::FilterType::Triangle);
+    for p in frame.points.decode()? {
+        let pr = cam.project([p[0] as f64, p[1] as f64, p[2] as f64]);
+        if pr.in_image {
+            dot(&mut img, pr.uv[0] / 2.0, pr.uv[1] / 2.0, 0, depth_colour(p[2] - 1.0));
+        }
+    }
+    for person in &frame.persons {
+        if let Some(b) = person.box_2d {
+            let (x0, y0, x1, y1) = (
+                (b.center_x - b.width / 2.0) / 2.0,
+                (b.center_y - b.height / 2.0) / 2.0,
+                (b.center_x + b.width / 2.0) / 2.0,
+                (b.center_y + b.height / 2.0) / 2.0,
+            );
+            for (a, c) in [([x0, y0], [x1, y0]), ([x1, y0], [x1, y1]), ([x1, y1], [x0, y1]), ([x0, y1], [x0, y0])] {
+                line(&mut img, a, c, [0, 255, 255]);
+            }
+        }
+        if let Some(k2) = person.ground_truth.as_ref().and_then(|g| g.keypoints_2d.as_ref()) {
+            for &(a, b) in &SKELETON {
+                if k2.visible[a] && k2.visible[b] {
+                    line(&mut img, [k2.uv[a][0] / 2.0, k2.uv[a][1] / 2.0], [k2.uv[b][0] / 2.0, k2.uv[b][1] / 2.0], [255, 200, 0]);
+                }
+            }
+        }
+    }
+    Ok(img)
+}
