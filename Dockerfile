@@ -7,9 +7,8 @@ RUN apt-get update \
     && apt-get install -y --no-install-recommends python3 python3-venv python3-pip \
     && rm -rf /var/lib/apt/lists/*
 WORKDIR /src
-# CPU wheels of torch: the set-up installs the trainer too, and CUDA wheels would only add gigabytes.
-ENV PIP_EXTRA_INDEX_URL=https://download.pytorch.org/whl/cpu \
-    PIP_NO_CACHE_DIR=1
+# Only PyPI is used (the set-up installs the trainer too; the runtime stage keeps just the library).
+ENV PIP_NO_CACHE_DIR=1
 COPY scripts scripts
 COPY models-export models-export
 RUN bash scripts/setup.sh
