@@ -33,11 +33,14 @@ fn bench_person(c: &mut Criterion, image_size: u32) {
     rng.fill(&mut raw[..]);
     let image = RgbImage::from_raw(1920, 1280, raw).expect("buffer size");
     // a person 8 m ahead: 2,000 points in the box and 20,000 elsewhere in the sweep
-    let box3d = Box3d { center_x: 9.5, center_y: 0.5, center_z: 0.9, length: 0.6, width: 0.7, height: 1.8, heading: 0.3 };
+    let box3d =
+        Box3d { center_x: 9.5, center_y: 0.5, center_z: 0.9, length: 0.6, width: 0.7, height: 1.8, heading: 0.3 };
     let mut points: Vec<[f32; 3]> = (0..2000)
         .map(|_| [9.5 + rng.random_range(-0.25..0.25), 0.5 + rng.random_range(-0.3..0.3), rng.random_range(0.0..1.8)])
         .collect();
-    points.extend((0..20000).map(|_| [rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(0.0..3.0)]));
+    points.extend(
+        (0..20000).map(|_| [rng.random_range(-40.0..40.0), rng.random_range(-40.0..40.0), rng.random_range(0.0..3.0)]),
+    );
     let box2d = Box2d { center_x: 900.0, center_y: 600.0, width: 180.0, height: 420.0 };
     let hw = cfg.heatmap_size as usize;
     let heatmaps: Vec<f32> = (0..K * hw * hw).map(|_| rng.random::<f32>()).collect();
@@ -63,7 +66,9 @@ fn bench_person(c: &mut Criterion, image_size: u32) {
             black_box(point_input(&pp, &cfg))
         })
     });
-    let uv = point_input(&gather_points(&points, &frame, Some(&cam), Some(&t), &cfg), &cfg).map(|i| i.uv).unwrap_or_default();
+    let uv = point_input(&gather_points(&points, &frame, Some(&cam), Some(&t), &cfg), &cfg)
+        .map(|i| i.uv)
+        .unwrap_or_default();
     c.bench_function(&format!("fusion_s{image_size}"), |b| {
         b.iter(|| black_box(smoothed_features(&heatmaps, K, hw, hw, &uv, &cfg)))
     });

@@ -255,7 +255,10 @@ impl GroundTruth {
     pub fn validate(&self, field: &str) -> Result<()> {
         if let Some(k3) = &self.keypoints_3d {
             if k3.xyz.len() != K || k3.visible.len() != K {
-                return Err(Error::field(format!("{field}.keypoints_3d"), format!("needs {K} keypoints and {K} visibility flags")));
+                return Err(Error::field(
+                    format!("{field}.keypoints_3d"),
+                    format!("needs {K} keypoints and {K} visibility flags"),
+                ));
             }
             for (i, p) in k3.xyz.iter().enumerate() {
                 for v in p {
@@ -265,7 +268,10 @@ impl GroundTruth {
         }
         if let Some(k2) = &self.keypoints_2d {
             if k2.uv.len() != K || k2.visible.len() != K {
-                return Err(Error::field(format!("{field}.keypoints_2d"), format!("needs {K} keypoints and {K} visibility flags")));
+                return Err(Error::field(
+                    format!("{field}.keypoints_2d"),
+                    format!("needs {K} keypoints and {K} visibility flags"),
+                ));
             }
             for (i, p) in k2.uv.iter().enumerate() {
                 for v in p {
@@ -311,7 +317,12 @@ mod tests {
         for i in 0..4 {
             ext[i * 5] = 1.0;
         }
-        CameraCalibration { intrinsic: vec![1000.0, 1000.0, 960.0, 640.0, 0.0, 0.0, 0.0, 0.0, 0.0], extrinsic: ext, width: 1920, height: 1280 }
+        CameraCalibration {
+            intrinsic: vec![1000.0, 1000.0, 960.0, 640.0, 0.0, 0.0, 0.0, 0.0, 0.0],
+            extrinsic: ext,
+            width: 1920,
+            height: 1280,
+        }
     }
 
     fn frame() -> Frame {
@@ -323,7 +334,15 @@ mod tests {
             persons: vec![Person {
                 id: "p".into(),
                 box_2d: Some(Box2d { center_x: 960.0, center_y: 640.0, width: 50.0, height: 150.0 }),
-                box_3d: Box3d { center_x: 10.0, center_y: 0.0, center_z: 1.0, length: 0.6, width: 0.6, height: 1.8, heading: 0.0 },
+                box_3d: Box3d {
+                    center_x: 10.0,
+                    center_y: 0.0,
+                    center_z: 1.0,
+                    length: 0.6,
+                    width: 0.6,
+                    height: 1.8,
+                    heading: 0.0,
+                },
                 ground_truth: None,
             }],
             mode: RequestedMode::Auto,

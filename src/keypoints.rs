@@ -24,25 +24,12 @@ pub const NAMES: [&str; K] = [
 pub const WAYMO_TYPES: [u32; K] = [1, 5, 13, 6, 14, 7, 15, 8, 16, 9, 17, 10, 18];
 
 /// Waymo's per-type OKS scale (twice the COCO sigma).
-pub const OKS_SCALES: [f64; K] = [
-    0.052, 0.158, 0.158, 0.144, 0.144, 0.124, 0.124, 0.214, 0.214, 0.174, 0.174, 0.178, 0.178,
-];
+pub const OKS_SCALES: [f64; K] =
+    [0.052, 0.158, 0.158, 0.144, 0.144, 0.124, 0.124, 0.214, 0.214, 0.174, 0.174, 0.178, 0.178];
 
 /// Skeleton edges for drawing (pairs of keypoint indices).
-pub const SKELETON: [(usize, usize); 12] = [
-    (1, 2),
-    (1, 3),
-    (3, 5),
-    (2, 4),
-    (4, 6),
-    (1, 7),
-    (2, 8),
-    (7, 8),
-    (7, 9),
-    (9, 11),
-    (8, 10),
-    (10, 12),
-];
+pub const SKELETON: [(usize, usize); 12] =
+    [(1, 2), (1, 3), (3, 5), (2, 4), (4, 6), (1, 7), (2, 8), (7, 8), (7, 9), (9, 11), (8, 10), (10, 12)];
 
 /// For each keypoint, the index of its mirror image (left <-> right); used by flip augmentation.
 pub const FLIP: [usize; K] = [0, 2, 1, 4, 3, 6, 5, 8, 7, 10, 9, 12, 11];

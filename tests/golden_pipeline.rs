@@ -85,22 +85,29 @@ fn fusion_smoothing_and_sampling() {
 #[test]
 fn point_normalization() {
     let cfg = PipelineConfig::default();
-    let b = Box3d { center_x: 12.0, center_y: -3.0, center_z: 0.85, length: 0.7, width: 0.9, height: 1.7, heading: 2.4 };
+    let b =
+        Box3d { center_x: 12.0, center_y: -3.0, center_z: 0.85, length: 0.7, width: 0.9, height: 1.7, heading: 2.4 };
     let frame = BoxFrame::new(&b);
     let mut rng = ChaCha8Rng::seed_from_u64(3);
-    let vehicle: Vec<[f64; 3]> =
-        (0..8).map(|_| [12.0 + rng.random_range(-0.5..0.5), -3.0 + rng.random_range(-0.5..0.5), rng.random_range(0.0..1.7)]).collect();
+    let vehicle: Vec<[f64; 3]> = (0..8)
+        .map(|_| [12.0 + rng.random_range(-0.5..0.5), -3.0 + rng.random_range(-0.5..0.5), rng.random_range(0.0..1.7)])
+        .collect();
     let local: Vec<[f64; 3]> = vehicle.iter().map(|p| to_local(&frame, *p, &cfg)).collect();
-    check("points.json", json!({"box3d": b, "rotate_by_heading": cfg.rotate_by_heading, "vehicle": vehicle, "local": local}));
+    check(
+        "points.json",
+        json!({"box3d": b, "rotate_by_heading": cfg.rotate_by_heading, "vehicle": vehicle, "local": local}),
+    );
 }
 
 #[test]
 fn lifting_and_reliability() {
     let (s, t, t_r) = (64u32, 2000.0, 400.0);
     let mut rng = ChaCha8Rng::seed_from_u64(5);
-    let points_uv: Vec<[f32; 2]> = (0..30).map(|_| [rng.random_range(0.0..64.0), rng.random_range(0.0..64.0)]).collect();
-    let points_xyz: Vec<[f32; 3]> =
-        (0..30).map(|_| [rng.random_range(-0.4..0.4), rng.random_range(-0.4..0.4), rng.random_range(-0.9..0.9)]).collect();
+    let points_uv: Vec<[f32; 2]> =
+        (0..30).map(|_| [rng.random_range(0.0..64.0), rng.random_range(0.0..64.0)]).collect();
+    let points_xyz: Vec<[f32; 3]> = (0..30)
+        .map(|_| [rng.random_range(-0.4..0.4), rng.random_range(-0.4..0.4), rng.random_range(-0.9..0.9)])
+        .collect();
     let kp_uv: Vec<[f32; 2]> = (0..13).map(|_| [rng.random_range(0.0..64.0), rng.random_range(0.0..64.0)]).collect();
     let lifted = lift(&kp_uv, &points_uv, &points_xyz, s, t);
     check(

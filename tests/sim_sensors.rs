@@ -4,15 +4,15 @@
 
 use posefuse::geometry::Camera;
 use posefuse::sim::body::Anthro;
+use posefuse::sim::body::Part;
 use posefuse::sim::dataset::frame_rng;
 use posefuse::sim::labels::{box_2d, keypoint_visible};
 use posefuse::sim::lidar::{inclinations, scan};
 use posefuse::sim::math::{norm, normalize, sub};
 use posefuse::sim::poses::{pose_person, Activity};
+use posefuse::sim::raycast::Shape;
 use posefuse::sim::render::{render, RayGrid, Region, Rendered};
 use posefuse::sim::scene::{Ground, ObjectKind, Scene, GROUND};
-use posefuse::sim::body::Part;
-use posefuse::sim::raycast::Shape;
 use posefuse::sim::scene::{Material, Pattern};
 use posefuse::sim::world::{nominal_camera, put_person, sample_world, Look, World, LIDAR_ORIGIN};
 
@@ -135,17 +135,32 @@ fn self_occlusion_follows_the_viewpoint() {
     let mut rng = frame_rng(3, 3);
     // Facing the camera (heading π: the person looks back along −x toward the vehicle).
     let mut w = empty_world();
-    let p = put_person(&mut rng, &mut w.scene, standing(1), [12.0, 0.0, 0.0], std::f64::consts::PI, ObjectKind::Person { label: Some(0) });
+    let p = put_person(
+        &mut rng,
+        &mut w.scene,
+        standing(1),
+        [12.0, 0.0, 0.0],
+        std::f64::consts::PI,
+        ObjectKind::Person { label: Some(0) },
+    );
     let front: Vec<bool> = (0..13).map(|k| keypoint_visible(&w, &p, k)).collect();
     assert!(front[0] && front[1] && front[2] && front[7] && front[8], "front view: {front:?}");
     // Facing away: the nose is behind the head.
     let mut w = empty_world();
-    let p = put_person(&mut rng, &mut w.scene, standing(1), [12.0, 0.0, 0.0], 0.0, ObjectKind::Person { label: Some(0) });
+    let p =
+        put_person(&mut rng, &mut w.scene, standing(1), [12.0, 0.0, 0.0], 0.0, ObjectKind::Person { label: Some(0) });
     let back: Vec<bool> = (0..13).map(|k| keypoint_visible(&w, &p, k)).collect();
     assert!(!back[0] && back[1] && back[2], "back view: {back:?}");
     // Left side toward the camera (heading +90°: facing +y, its left points to −x).
     let mut w = empty_world();
-    let p = put_person(&mut rng, &mut w.scene, standing(1), [12.0, 0.0, 0.0], std::f64::consts::FRAC_PI_2, ObjectKind::Person { label: Some(0) });
+    let p = put_person(
+        &mut rng,
+        &mut w.scene,
+        standing(1),
+        [12.0, 0.0, 0.0],
+        std::f64::consts::FRAC_PI_2,
+        ObjectKind::Person { label: Some(0) },
+    );
     let side: Vec<bool> = (0..13).map(|k| keypoint_visible(&w, &p, k)).collect();
     assert!(side[1] && !side[2] && side[7] && !side[8], "side view: {side:?}");
 }
@@ -154,7 +169,14 @@ fn self_occlusion_follows_the_viewpoint() {
 fn a_wall_in_front_hides_the_legs_only() {
     let mut rng = frame_rng(4, 4);
     let mut w = empty_world();
-    let p = put_person(&mut rng, &mut w.scene, standing(2), [14.0, 0.0, 0.0], std::f64::consts::PI, ObjectKind::Person { label: Some(0) });
+    let p = put_person(
+        &mut rng,
+        &mut w.scene,
+        standing(2),
+        [14.0, 0.0, 0.0],
+        std::f64::consts::PI,
+        ObjectKind::Person { label: Some(0) },
+    );
     // A 1 m high wall 3 m in front of the person.
     let wall = w.scene.add_object(ObjectKind::Clutter);
     let m = w.scene.add_material(Material { base: [0.5; 3], alt: [0.5; 3], pattern: Pattern::Plain });

@@ -93,7 +93,15 @@ mod tests {
     use super::*;
 
     fn b(heading: f64) -> BoxFrame {
-        BoxFrame::new(&Box3d { center_x: 10.0, center_y: 2.0, center_z: 1.0, length: 1.0, width: 0.5, height: 2.0, heading })
+        BoxFrame::new(&Box3d {
+            center_x: 10.0,
+            center_y: 2.0,
+            center_z: 1.0,
+            length: 1.0,
+            width: 0.5,
+            height: 2.0,
+            heading,
+        })
     }
 
     #[test]
@@ -120,7 +128,11 @@ mod tests {
         }
         for c in f.corners() {
             let q = f.to_local(c);
-            assert!((q[0].abs() - 0.5).abs() < 1e-12 && (q[1].abs() - 0.25).abs() < 1e-12 && (q[2].abs() - 1.0).abs() < 1e-12);
+            assert!(
+                (q[0].abs() - 0.5).abs() < 1e-12
+                    && (q[1].abs() - 0.25).abs() < 1e-12
+                    && (q[2].abs() - 1.0).abs() < 1e-12
+            );
             assert!(f.contains(c, 1e-9));
         }
         assert!((f.volume() - 1.0).abs() < 1e-12);

@@ -63,7 +63,10 @@ impl PipelineConfig {
     /// Checks internal consistency (used when a bundle or a dataset is loaded).
     pub fn validate(&self) -> Result<(), String> {
         if self.image_size < 8 || self.heatmap_size == 0 || !self.image_size.is_multiple_of(self.heatmap_size) {
-            return Err(format!("image_size {} must be a multiple of heatmap_size {}", self.image_size, self.heatmap_size));
+            return Err(format!(
+                "image_size {} must be a multiple of heatmap_size {}",
+                self.image_size, self.heatmap_size
+            ));
         }
         if self.smoothing_kernel.is_multiple_of(2) {
             return Err(format!("smoothing_kernel must be odd, got {}", self.smoothing_kernel));
@@ -72,7 +75,11 @@ impl PipelineConfig {
         if self.num_points == 0 || !positive(self.smoothing_sigma) || !self.std.iter().all(|s| positive(*s)) {
             return Err("num_points, smoothing_sigma and std must be positive".into());
         }
-        if self.crop_scale.is_nan() || self.crop_scale < 1.0 || self.lift_temperature.is_nan() || self.lift_temperature <= 0.0 {
+        if self.crop_scale.is_nan()
+            || self.crop_scale < 1.0
+            || self.lift_temperature.is_nan()
+            || self.lift_temperature <= 0.0
+        {
             return Err("crop_scale must be >= 1 and lift_temperature > 0".into());
         }
         Ok(())

@@ -73,7 +73,8 @@ pub fn crop_rgb(image: &RgbImage, t: &CropTransform) -> RgbImage {
     let inside = ix0 >= 0 && iy0 >= 0 && ix1 <= iw && iy1 <= ih;
     let done = if inside {
         // the filter reads at most `margin` pixels around the window, all inside the image
-        let opts = ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Box)).crop(t.x0, t.y0, side, side);
+        let opts =
+            ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Box)).crop(t.x0, t.y0, side, side);
         match fast_image_resize::images::ImageRef::new(image.width(), image.height(), image.as_raw(), PixelType::U8x3) {
             Ok(view) => Resizer::new().resize(&view, &mut dst, &opts).is_ok(),
             Err(_) => false,
@@ -93,9 +94,12 @@ pub fn crop_rgb(image: &RgbImage, t: &CropTransform) -> RgbImage {
                 patch[d..d + row_bytes].copy_from_slice(&src[so..so + row_bytes]);
             }
         }
-        let opts = ResizeOptions::new()
-            .resize_alg(ResizeAlg::Convolution(FilterType::Box))
-            .crop(t.x0 - ix0 as f64, t.y0 - iy0 as f64, side, side);
+        let opts = ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Box)).crop(
+            t.x0 - ix0 as f64,
+            t.y0 - iy0 as f64,
+            side,
+            side,
+        );
         match Image::from_vec_u8(pw, ph, patch, PixelType::U8x3) {
             Ok(src) => Resizer::new().resize(&src, &mut dst, &opts).is_ok(),
             Err(_) => false,

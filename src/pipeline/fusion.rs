@@ -83,7 +83,14 @@ pub fn sample_features(smoothed: &[f32], k: usize, h: usize, w: usize, uv: &[[f3
 /// [`smooth_heatmaps`] followed by [`sample_features`], computing the smoothed value only at the
 /// sampled cells (N·K·(k+k) taps instead of K·H·W·2k), with the same summation order, so the
 /// result is bit-identical.
-pub fn smoothed_features(heatmaps: &[f32], k: usize, h: usize, w: usize, uv: &[[f32; 2]], cfg: &PipelineConfig) -> Vec<f32> {
+pub fn smoothed_features(
+    heatmaps: &[f32],
+    k: usize,
+    h: usize,
+    w: usize,
+    uv: &[[f32; 2]],
+    cfg: &PipelineConfig,
+) -> Vec<f32> {
     let g = gaussian_1d(cfg.smoothing_kernel, cfg.smoothing_sigma);
     let r = g.len() / 2;
     let mut out = vec![0.0f32; uv.len() * k];
@@ -179,10 +186,14 @@ mod tests {
         let f = sample_features(&hm, k, h, w, &[[9.0, 4.0], [f32::NAN, 1.0]], 16);
         // x = 9 → 2.25+0.5 → col 2; y = 4 → 1.5 → row 1
         assert_eq!(f, vec![6.0, 22.0, 0.0, 0.0]);
-        let cfg = PipelineConfig { image_size: 16, smoothing_kernel: 3, smoothing_sigma: 1.0, ..PipelineConfig::default() };
+        let cfg =
+            PipelineConfig { image_size: 16, smoothing_kernel: 3, smoothing_sigma: 1.0, ..PipelineConfig::default() };
         let uv = [[9.0, 4.0], [f32::NAN, 1.0], [0.0, 15.0], [9.2, 4.1]];
         let lazy = smoothed_features(&hm, k, h, w, &uv, &cfg);
         assert_eq!(lazy, sample_features(&smooth_heatmaps(&hm, k, h, w, &cfg), k, h, w, &uv, 16));
-        assert_eq!(fused_points(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], &f, k), vec![1., 2., 3., 6., 22., 4., 5., 6., 0., 0.]);
+        assert_eq!(
+            fused_points(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], &f, k),
+            vec![1., 2., 3., 6., 22., 4., 5., 6., 0., 0.]
+        );
     }
 }

@@ -15,7 +15,8 @@ pub fn lift(
     kp_uv
         .iter()
         .map(|kp| {
-            let logits: Vec<Option<f64>> = points_uv.iter().map(|p| dist2(kp, p, s).map(|d2| -temperature * d2)).collect();
+            let logits: Vec<Option<f64>> =
+                points_uv.iter().map(|p| dist2(kp, p, s).map(|d2| -temperature * d2)).collect();
             let max = logits.iter().flatten().fold(f64::NEG_INFINITY, |a, &b| a.max(b));
             if !max.is_finite() {
                 return [f32::NAN; 3];
@@ -63,7 +64,8 @@ pub fn decode_heatmaps(heatmaps: &[f32], k: usize, h: usize, w: usize, image_siz
     (0..k)
         .map(|c| {
             let m = &heatmaps[c * h * w..(c + 1) * h * w];
-            let (best, score) = m.iter().enumerate().fold((0, f32::NEG_INFINITY), |acc, (i, &v)| if v > acc.1 { (i, v) } else { acc });
+            let (best, score) =
+                m.iter().enumerate().fold((0, f32::NEG_INFINITY), |acc, (i, &v)| if v > acc.1 { (i, v) } else { acc });
             let (i, j) = (best / w, best % w);
             let shift = |lo: Option<f32>, hi: Option<f32>| match (lo, hi) {
                 (Some(a), Some(b)) if b > a => 0.25,

@@ -10,7 +10,11 @@ mod prepare;
 
 pub use config::PipelineConfig;
 pub use crop::{crop_rgb, normalize, normalize_into, CropTransform};
-pub use fusion::{cell_index, fused_points, gaussian_kernel, lidar_points, sample_features, smooth_heatmaps, smoothed_features};
+pub use fusion::{
+    cell_index, fused_points, gaussian_kernel, lidar_points, sample_features, smooth_heatmaps, smoothed_features,
+};
 pub use lift::{decode_heatmaps, lift, reliability};
-pub use points::{from_local, gather_points, input_seed, point_input, select_indices, to_local, PersonPoints, PointInput};
+pub use points::{
+    from_local, gather_points, input_seed, point_input, select_indices, to_local, PersonPoints, PointInput,
+};
 pub use prepare::{keypoints_to_pixels, keypoints_to_vehicle, prepare_person, PreparedPerson};

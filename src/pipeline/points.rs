@@ -196,7 +196,8 @@ mod tests {
     fn point_input_is_seeded_by_the_points() {
         let cfg = PipelineConfig { num_points: 16, ..PipelineConfig::default() };
         let b = person_box();
-        let pts: Vec<[f32; 3]> = (0..40).map(|i| [10.0, 2.0 + (i as f32 - 20.0) * 0.01, 0.2 + 0.03 * i as f32]).collect();
+        let pts: Vec<[f32; 3]> =
+            (0..40).map(|i| [10.0, 2.0 + (i as f32 - 20.0) * 0.01, 0.2 + 0.03 * i as f32]).collect();
         let pp = gather_points(&pts, &b, None, None, &cfg);
         let a = point_input(&pp, &cfg).unwrap_or_else(|| panic!("points expected"));
         assert_eq!(a.xyz.len(), 16);

@@ -3,7 +3,9 @@
 
 use image::RgbImage;
 
-use super::{crop_rgb, from_local, gather_points, point_input, CropTransform, PersonPoints, PipelineConfig, PointInput};
+use super::{
+    crop_rgb, from_local, gather_points, point_input, CropTransform, PersonPoints, PipelineConfig, PointInput,
+};
 use crate::frame::{Box2d, Box3d};
 use crate::geometry::{BoxFrame, Camera};
 

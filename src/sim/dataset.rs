@@ -132,7 +132,8 @@ pub fn render_crop(world: &World, t: &CropTransform) -> Result<RgbImage> {
         patch = decode_jpeg(&encode_jpeg(&patch)?)?;
     }
     let s = step as f64;
-    let local = CropTransform { x0: (t.x0 - wx0 as f64) / s, y0: (t.y0 - wy0 as f64) / s, scale: t.scale * s, size: t.size };
+    let local =
+        CropTransform { x0: (t.x0 - wx0 as f64) / s, y0: (t.y0 - wy0 as f64) / s, scale: t.scale * s, size: t.size };
     Ok(crop_rgb(&patch, &local))
 }
 
@@ -356,7 +357,12 @@ pub struct ShardWriter {
     pub written: Vec<(String, usize)>,
 }
 
-fn add<T: WritableElement>(npz: &mut NpzWriter<std::fs::File>, name: &str, shape: &[usize], data: Vec<T>) -> Result<()> {
+fn add<T: WritableElement>(
+    npz: &mut NpzWriter<std::fs::File>,
+    name: &str,
+    shape: &[usize],
+    data: Vec<T>,
+) -> Result<()> {
     let a = ArrayD::from_shape_vec(IxDyn(shape), data).map_err(|e| Error::Io(format!("shard array {name}: {e}")))?;
     npz.add_array(name, &a).map_err(|e| Error::Io(format!("shard array {name}: {e}")))
 }
@@ -409,9 +415,19 @@ impl ShardWriter {
         add(&mut npz, "serve_uv", &[m, n, 2], b.iter().flat_map(|x| x.serve_uv.iter().flatten().copied()).collect())?;
         add(&mut npz, "kp2d", &[m, K, 2], b.iter().flat_map(|x| x.kp2d.iter().flatten().copied()).collect())?;
         add(&mut npz, "kp2d_visible", &[m, K], b.iter().flat_map(|x| x.kp2d_visible).collect())?;
-        add(&mut npz, "kp2d_image_true", &[m, K, 2], b.iter().flat_map(|x| x.kp2d_image_true.iter().flatten().copied()).collect())?;
+        add(
+            &mut npz,
+            "kp2d_image_true",
+            &[m, K, 2],
+            b.iter().flat_map(|x| x.kp2d_image_true.iter().flatten().copied()).collect(),
+        )?;
         add(&mut npz, "kp3d", &[m, K, 3], b.iter().flat_map(|x| x.kp3d.iter().flatten().copied()).collect())?;
-        add(&mut npz, "kp3d_vehicle", &[m, K, 3], b.iter().flat_map(|x| x.kp3d_vehicle.iter().flatten().copied()).collect())?;
+        add(
+            &mut npz,
+            "kp3d_vehicle",
+            &[m, K, 3],
+            b.iter().flat_map(|x| x.kp3d_vehicle.iter().flatten().copied()).collect(),
+        )?;
         add(&mut npz, "kp3d_visible", &[m, K], b.iter().flat_map(|x| x.kp3d_visible).collect())?;
         add(&mut npz, "box3d", &[m, 7], b.iter().flat_map(|x| x.box3d).collect())?;
         add(&mut npz, "box2d", &[m, 4], b.iter().flat_map(|x| x.box2d).collect())?;

@@ -76,7 +76,12 @@ pub fn box_2d(world: &World, p: &PlacedPerson) -> Option<Box2d> {
 }
 
 /// All labels of a person; `lidar_person_points` are the returns on this person.
-pub fn label_person<R: Rng>(world: &World, p: &PlacedPerson, lidar_person_points: &[V3], rng: &mut R) -> Option<PersonLabels> {
+pub fn label_person<R: Rng>(
+    world: &World,
+    p: &PlacedPerson,
+    lidar_person_points: &[V3],
+    rng: &mut R,
+) -> Option<PersonLabels> {
     let box2d = box_2d(world, p)?;
     let sigma = (LABEL_NOISE_FRACTION * box2d.height).min(LABEL_NOISE_CAP_PX);
     let noise = Normal::new(0.0, sigma).ok();

@@ -144,7 +144,11 @@ pub fn scan<R: Rng>(world: &World, rng: &mut R) -> Vec<Return> {
                 }
                 let t = hit.t + noise.map_or(0.0, |n| n.sample(rng));
                 let x = madd(o, d, t);
-                out.push(Return { xyz: [x[0] as f32, x[1] as f32, x[2] as f32], object: scene.object_of(&hit), prim: hit.prim });
+                out.push(Return {
+                    xyz: [x[0] as f32, x[1] as f32, x[2] as f32],
+                    object: scene.object_of(&hit),
+                    prim: hit.prim,
+                });
             }
         }
     }

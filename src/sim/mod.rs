@@ -111,7 +111,8 @@ pub fn simulate_command(args: SimulateArgs) -> anyhow::Result<()> {
             if let Some(mut f) = r.fixture.take() {
                 f.persons.truncate(take);
                 let path = out.join("requests").join(format!("frame-{:06}.json", r.index));
-                std::fs::write(&path, serde_json::to_vec(&f)?).with_context(|| format!("writing {}", path.display()))?;
+                std::fs::write(&path, serde_json::to_vec(&f)?)
+                    .with_context(|| format!("writing {}", path.display()))?;
                 fixtures += 1;
                 first_fixture.get_or_insert_with(|| format!("frame-{:06}.json", r.index));
             }

@@ -238,7 +238,10 @@ pub fn pose_person<R: Rng>(rng: &mut R, anthro: Anthro, activity: Activity) -> P
             extra.push((Shape::capsule([0.4, 0.0, deck_z], [0.44 * s, 0.0, handle_z], 0.02), Slot::Frame));
             extra.push((Shape::capsule([0.44 * s, 0.22, handle_z], [0.44 * s, -0.22, handle_z], 0.018), Slot::Gear));
             for x in [-0.38, 0.42] {
-                extra.push((Shape::ellipsoid([x, 0.0, 0.07], [FWD, [0.0, 1.0, 0.0], UP], [0.07, 0.02, 0.07]), Slot::Tyre));
+                extra.push((
+                    Shape::ellipsoid([x, 0.0, 0.07], [FWD, [0.0, 1.0, 0.0], UP], [0.07, 0.02, 0.07]),
+                    Slot::Tyre,
+                ));
             }
             p
         }

@@ -97,7 +97,8 @@ pub fn frame_overview(frame: &crate::frame::Frame) -> crate::Result<RgbImage> {
         .map_err(|e| crate::Error::Io(format!("fixture image: {e}")))?;
     let full = super::dataset::decode_jpeg(&bytes)?;
     let cam = crate::geometry::Camera::from_calibration(&frame.calibration)?;
-    let mut img = image::imageops::resize(&full, full.width() / 2, full.height() / 2, image::imageops::FilterType::Triangle);
+    let mut img =
+        image::imageops::resize(&full, full.width() / 2, full.height() / 2, image::imageops::FilterType::Triangle);
     for p in frame.points.decode()? {
         let pr = cam.project([p[0] as f64, p[1] as f64, p[2] as f64]);
         if pr.in_image {
@@ -119,7 +120,12 @@ pub fn frame_overview(frame: &crate::frame::Frame) -> crate::Result<RgbImage> {
         if let Some(k2) = person.ground_truth.as_ref().and_then(|g| g.keypoints_2d.as_ref()) {
             for &(a, b) in &SKELETON {
                 if k2.visible[a] && k2.visible[b] {
-                    line(&mut img, [k2.uv[a][0] / 2.0, k2.uv[a][1] / 2.0], [k2.uv[b][0] / 2.0, k2.uv[b][1] / 2.0], [255, 200, 0]);
+                    line(
+                        &mut img,
+                        [k2.uv[a][0] / 2.0, k2.uv[a][1] / 2.0],
+                        [k2.uv[b][0] / 2.0, k2.uv[b][1] / 2.0],
+                        [255, 200, 0],
+                    );
                 }
             }
         }

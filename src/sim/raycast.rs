@@ -6,12 +6,26 @@ use super::math::{add, cross, dot, madd, norm, normalize, scale, sub, V3};
 /// A solid primitive in the vehicle frame (or the body frame before placement).
 #[derive(Debug, Clone, Copy)]
 pub enum Shape {
-    Capsule { a: V3, b: V3, r: f64 },
+    Capsule {
+        a: V3,
+        b: V3,
+        r: f64,
+    },
     /// `inv` maps an offset from `c` to unit-sphere coordinates (rows = axis / semi-axis).
-    Ellipsoid { c: V3, axes: [V3; 3], semi: [f64; 3], inv: [V3; 3] },
+    Ellipsoid {
+        c: V3,
+        axes: [V3; 3],
+        semi: [f64; 3],
+        inv: [V3; 3],
+    },
     /// Box with centre `c`, half sizes `half` along its own x (heading), y, z axes; `cs` is
     /// (cos, sin) of `yaw`, kept because every ray needs it.
-    Box { c: V3, half: V3, yaw: f64, cs: [f64; 2] },
+    Box {
+        c: V3,
+        half: V3,
+        yaw: f64,
+        cs: [f64; 2],
+    },
 }
 
 impl Shape {
@@ -261,7 +275,8 @@ mod tests {
 
     #[test]
     fn ellipsoid_and_box_hits() {
-        let e = Shape::ellipsoid([10.0, 0.0, 1.0], [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], [0.2, 0.3, 0.5]);
+        let e =
+            Shape::ellipsoid([10.0, 0.0, 1.0], [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]], [0.2, 0.3, 0.5]);
         let (t, _) = e.intersect([0.0, 0.0, 1.0], [1.0, 0.0, 0.0], 0.0).unwrap();
         assert!((t - 9.8).abs() < 1e-12);
         let (t, _) = e.intersect([10.0, -5.0, 1.0], [0.0, 1.0, 0.0], 0.0).unwrap();

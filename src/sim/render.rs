@@ -87,7 +87,8 @@ impl RayGrid {
         let gi = i / NODE as f64;
         let ni = (gi.floor() as usize).min(self.nodes.len() / self.nw - 2);
         let fi = gi - ni as f64;
-        let (top, bot) = (&self.nodes[ni * self.nw..(ni + 1) * self.nw], &self.nodes[(ni + 1) * self.nw..(ni + 2) * self.nw]);
+        let (top, bot) =
+            (&self.nodes[ni * self.nw..(ni + 1) * self.nw], &self.nodes[(ni + 1) * self.nw..(ni + 2) * self.nw]);
         for ((o, t), b) in out.iter_mut().zip(top).zip(bot) {
             *o = [t[0] + (b[0] - t[0]) * fi, t[1] + (b[1] - t[1]) * fi];
         }
@@ -117,7 +118,8 @@ impl RayGrid {
     /// at (j + 0.5, i + 0.5).
     pub fn dir(&self, j: f64, i: f64) -> V3 {
         let (gj, gi) = (j / NODE as f64, i / NODE as f64);
-        let (nj, ni) = ((gj.floor() as usize).min(self.nw - 2), (gi.floor() as usize).min(self.nodes.len() / self.nw - 2));
+        let (nj, ni) =
+            ((gj.floor() as usize).min(self.nw - 2), (gi.floor() as usize).min(self.nodes.len() / self.nw - 2));
         let (fj, fi) = (gj - nj as f64, gi - ni as f64);
         let n = |a: usize, b: usize| self.nodes[(ni + b) * self.nw + nj + a];
         let mut uv = [0.0; 2];
@@ -131,7 +133,15 @@ impl RayGrid {
 }
 
 /// Primitives whose bounding sphere may be seen inside the cone through a pixel rectangle.
-fn cone_candidates(scene: &Scene, rays: &RayGrid, j0: usize, i0: usize, j1: usize, i1: usize, from: &[u32]) -> Vec<u32> {
+fn cone_candidates(
+    scene: &Scene,
+    rays: &RayGrid,
+    j0: usize,
+    i0: usize,
+    j1: usize,
+    i1: usize,
+    from: &[u32],
+) -> Vec<u32> {
     let corners = [
         rays.dir(j0 as f64, i0 as f64),
         rays.dir(j1 as f64, i0 as f64),

@@ -19,7 +19,9 @@ pub const GROUND: u32 = 0;
 pub enum ObjectKind {
     Ground,
     /// A pedestrian; `label` is its index among the frame's labelled persons.
-    Person { label: Option<usize> },
+    Person {
+        label: Option<usize>,
+    },
     Car,
     Pole,
     Tree,
@@ -36,7 +38,10 @@ pub enum Pattern {
     /// Checks of the given cell size (metres).
     Checks(f64),
     /// Skin face in front, hair on the back and top.
-    Head { facing: V3, up: V3 },
+    Head {
+        facing: V3,
+        up: V3,
+    },
     /// Windows on a façade (cell size in metres).
     Facade(f64),
     /// Mottled (foliage, bark): noise at the given frequency (1/m).
@@ -220,8 +225,8 @@ impl Scene {
                 return white.map(|v| v * grain);
             }
         }
-        let lane = ((y - 1.8).abs() < 0.07 && (p[0] / 9.0).rem_euclid(1.0) < 0.35)
-            || (y - (g.road_half - 0.3)).abs() < 0.08;
+        let lane =
+            ((y - 1.8).abs() < 0.07 && (p[0] / 9.0).rem_euclid(1.0) < 0.35) || (y - (g.road_half - 0.3)).abs() < 0.08;
         if lane {
             return white.map(|v| v * grain);
         }

@@ -238,7 +238,11 @@ fn add_person<R: Rng>(rng: &mut R, scene: &mut Scene, object: u32, m: &PersonMod
         scene.add_prim(shape.placed(heading, pos), object, *part, slot_id(*slot));
     }
     let h = m.anthro.height;
-    scene.shadows.push([pos[0] - scene.sun[0] / scene.sun[2] * 0.3 * h, pos[1] - scene.sun[1] / scene.sun[2] * 0.3 * h, 0.4]);
+    scene.shadows.push([
+        pos[0] - scene.sun[0] / scene.sun[2] * 0.3 * h,
+        pos[1] - scene.sun[1] / scene.sun[2] * 0.3 * h,
+        0.4,
+    ]);
     body
 }
 
@@ -288,26 +292,42 @@ pub fn add_car<R: Rng>(rng: &mut R, scene: &mut Scene, x: f64, y: f64, yaw: f64)
     );
     for (fx, fy) in [(0.33, 0.5), (0.33, -0.5), (-0.33, 0.5), (-0.33, -0.5)] {
         let axes = [rot_z([1.0, 0.0, 0.0], yaw), rot_z([0.0, 1.0, 0.0], yaw), [0.0, 0.0, 1.0]];
-        scene.add_prim(Shape::ellipsoid(p([fx * l, fy * w * 0.95, 0.33]), axes, [0.33, 0.1, 0.33]), obj, Part::Thing, tyre);
+        scene.add_prim(
+            Shape::ellipsoid(p([fx * l, fy * w * 0.95, 0.33]), axes, [0.33, 0.1, 0.33]),
+            obj,
+            Part::Thing,
+            tyre,
+        );
     }
     scene.shadows.push([x, y, 0.55 * l]);
 }
 
 fn add_pole<R: Rng>(rng: &mut R, scene: &mut Scene, x: f64, y: f64) {
     let obj = scene.add_object(ObjectKind::Pole);
-    let m = scene.add_material(plain(srgb(rng.random_range(60..160), rng.random_range(60..160), rng.random_range(60..160))));
+    let m = scene.add_material(plain(srgb(
+        rng.random_range(60..160),
+        rng.random_range(60..160),
+        rng.random_range(60..160),
+    )));
     let (r, h) = (rng.random_range(0.05..0.16), rng.random_range(2.5..6.0));
     scene.add_prim(Shape::capsule([x, y, 0.0], [x, y, h], r), obj, Part::Thing, m);
     if rng.random_bool(0.3) {
         let sign = scene.add_material(plain(cloth(rng)));
-        scene.add_prim(Shape::cuboid([x, y, h * 0.75], [0.05, 0.6, 0.6], rng.random_range(0.0..PI)), obj, Part::Thing, sign);
+        scene.add_prim(
+            Shape::cuboid([x, y, h * 0.75], [0.05, 0.6, 0.6], rng.random_range(0.0..PI)),
+            obj,
+            Part::Thing,
+            sign,
+        );
     }
 }
 
 fn add_tree<R: Rng>(rng: &mut R, scene: &mut Scene, x: f64, y: f64) {
     let obj = scene.add_object(ObjectKind::Tree);
-    let bark = scene.add_material(Material { base: srgb(70, 50, 35), alt: srgb(100, 75, 50), pattern: Pattern::Mottled(8.0) });
-    let leaves = scene.add_material(Material { base: srgb(40, 80, 30), alt: srgb(90, 130, 50), pattern: Pattern::Mottled(5.0) });
+    let bark =
+        scene.add_material(Material { base: srgb(70, 50, 35), alt: srgb(100, 75, 50), pattern: Pattern::Mottled(8.0) });
+    let leaves =
+        scene.add_material(Material { base: srgb(40, 80, 30), alt: srgb(90, 130, 50), pattern: Pattern::Mottled(5.0) });
     let h = rng.random_range(2.0..3.5);
     scene.add_prim(Shape::capsule([x, y, 0.0], [x, y, h], rng.random_range(0.1..0.2)), obj, Part::Thing, bark);
     let r = rng.random_range(1.2..2.5);
@@ -320,14 +340,28 @@ fn add_clutter<R: Rng>(rng: &mut R, scene: &mut Scene, x: f64, y: f64) {
     let m = scene.add_material(plain(cloth(rng)));
     let axes = [[1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, 1.0]];
     match rng.random_range(0..4) {
-        0 => scene.add_prim(Shape::cuboid([x, y, 0.45], [0.55, 0.55, 0.9], rng.random_range(0.0..PI)), obj, Part::Thing, m),
+        0 => scene.add_prim(
+            Shape::cuboid([x, y, 0.45], [0.55, 0.55, 0.9], rng.random_range(0.0..PI)),
+            obj,
+            Part::Thing,
+            m,
+        ),
         1 => scene.add_prim(Shape::capsule([x, y, 0.0], [x, y, 0.6], 0.13), obj, Part::Thing, m),
         2 => {
-            let leaves = scene.add_material(Material { base: srgb(35, 70, 30), alt: srgb(80, 120, 45), pattern: Pattern::Mottled(6.0) });
+            let leaves = scene.add_material(Material {
+                base: srgb(35, 70, 30),
+                alt: srgb(80, 120, 45),
+                pattern: Pattern::Mottled(6.0),
+            });
             let r = rng.random_range(0.4..0.9);
             scene.add_prim(Shape::ellipsoid([x, y, r * 0.6], axes, [r, r, r * 0.8]), obj, Part::Thing, leaves)
         }
-        _ => scene.add_prim(Shape::cuboid([x, y, 0.45], [1.6, 0.5, 0.45], rng.random_range(0.0..PI)), obj, Part::Thing, m),
+        _ => scene.add_prim(
+            Shape::cuboid([x, y, 0.45], [1.6, 0.5, 0.45], rng.random_range(0.0..PI)),
+            obj,
+            Part::Thing,
+            m,
+        ),
     }
 }
 
@@ -342,13 +376,26 @@ fn add_buildings<R: Rng>(rng: &mut R, scene: &mut Scene, road_half: f64) {
             let obj = scene.add_object(ObjectKind::Building);
             let wall = cloth(rng).map(|v| 0.3 + 0.5 * v);
             let win = srgb(rng.random_range(20..90), rng.random_range(30..100), rng.random_range(40..120));
-            let m = scene.add_material(Material { base: wall, alt: win, pattern: Pattern::Facade(rng.random_range(2.5..4.0)) });
-            scene.add_prim(Shape::cuboid([x + len / 2.0, side * (set + depth / 2.0), h / 2.0], [len, depth, h], 0.0), obj, Part::Thing, m);
+            let m = scene.add_material(Material {
+                base: wall,
+                alt: win,
+                pattern: Pattern::Facade(rng.random_range(2.5..4.0)),
+            });
+            scene.add_prim(
+                Shape::cuboid([x + len / 2.0, side * (set + depth / 2.0), h / 2.0], [len, depth, h], 0.0),
+                obj,
+                Part::Thing,
+                m,
+            );
             x += len + rng.random_range(0.0..8.0);
         }
     }
     let obj = scene.add_object(ObjectKind::Building);
-    let m = scene.add_material(Material { base: srgb(150, 140, 130), alt: srgb(40, 50, 70), pattern: Pattern::Facade(3.0) });
+    let m = scene.add_material(Material {
+        base: srgb(150, 140, 130),
+        alt: srgb(40, 50, 70),
+        pattern: Pattern::Facade(3.0),
+    });
     scene.add_prim(Shape::cuboid([150.0, 0.0, 15.0], [10.0, 120.0, 30.0], 0.0), obj, Part::Thing, m);
 }
 
@@ -437,15 +484,12 @@ pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize) -> Result<World> {
     scene.sun = [elev.cos() * az.cos(), elev.cos() * az.sin(), elev.sin()];
     scene.ambient = rng.random_range(0.3..0.65);
     let overcast = scene.ambient > 0.55;
-    scene.sky = if overcast {
-        [[0.6, 0.62, 0.65], [0.8, 0.8, 0.82]]
-    } else {
-        [[0.2, 0.35, 0.75], [0.7, 0.78, 0.88]]
-    };
+    scene.sky = if overcast { [[0.6, 0.62, 0.65], [0.8, 0.8, 0.82]] } else { [[0.2, 0.35, 0.75], [0.7, 0.78, 0.88]] };
     let mut feet = Footprints { taken: Vec::new(), limit_y: road_half + 4.5 };
     let mut persons = Vec::new();
     for i in 0..n_labelled {
-        if let Some(p) = place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: Some(i) }, None) {
+        if let Some(p) = place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: Some(i) }, None)
+        {
             persons.push(p);
         }
     }
@@ -490,7 +534,10 @@ pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize) -> Result<World> {
                         false
                     }
                 }
-                6..=8 => place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: None }, Some((x, y))).is_some(),
+                6..=8 => {
+                    place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: None }, Some((x, y)))
+                        .is_some()
+                }
                 _ => {
                     if feet.free(x, y, 0.9) {
                         feet.take(x, y, 0.9);
