@@ -194,11 +194,11 @@ pub fn pose_person<R: Rng>(rng: &mut R, anthro: Anthro, activity: Activity) -> P
             p.grounded = false;
             p.pelvis = add(saddle, [0.0, 0.0, 0.07 * s]);
             p.trunk_pitch = rng.random_range(0.25..0.6);
-            for sd in 0..2 {
+            for (sd, grip) in grips.iter().enumerate() {
                 let ph = phi + sd as f64 * std::f64::consts::PI;
                 let pedal = add(crank, [0.17 * s * ph.cos(), if sd == 0 { 0.11 } else { -0.11 }, 0.17 * s * ph.sin()]);
                 p.legs[sd] = Limb::Reach { target: add(pedal, [0.0, 0.0, a.ankle_h]), mid_dir: [1.0, 0.0, 0.4] };
-                p.arms[sd] = Limb::Reach { target: grips[sd], mid_dir: [-0.6, if sd == 0 { 0.5 } else { -0.5 }, -0.3] };
+                p.arms[sd] = Limb::Reach { target: *grip, mid_dir: [-0.6, if sd == 0 { 0.5 } else { -0.5 }, -0.3] };
                 p.foot_pitch[sd] = 0.15;
             }
             let wr = 0.34 * s.max(0.6);

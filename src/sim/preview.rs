@@ -4,7 +4,7 @@
 use image::{Rgb, RgbImage};
 
 use super::dataset::Sample;
-use crate::keypoints::{K, SKELETON};
+use crate::keypoints::SKELETON;
 
 fn put(img: &mut RgbImage, x: i64, y: i64, c: [u8; 3]) {
     if x >= 0 && y >= 0 && (x as u32) < img.width() && (y as u32) < img.height() {
@@ -63,9 +63,9 @@ pub fn sheet(samples: &[&Sample], s: u32, cols: u32) -> RgbImage {
                 line(&mut tile, kp[a], kp[b], [255, 200, 0]);
             }
         }
-        for k in 0..K {
+        for (k, p) in kp.iter().enumerate() {
             let c = if smp.kp2d_visible[k] == 1 { kp_colour(k) } else { [120, 120, 120] };
-            dot(&mut tile, kp[k][0], kp[k][1], 2, c);
+            dot(&mut tile, p[0], p[1], 2, c);
         }
         // Side view: local x (along the heading) to the right, z up; 2.4 m across the tile.
         let mut side = RgbImage::from_pixel(s, s, Rgb([12, 12, 20]));

@@ -260,8 +260,8 @@ pub fn render(world: &World, region: Region) -> Rendered {
         let (j, i) = ((k % w) as i64, (k / w) as i64);
         let (x, y) = (region.x0 + j * region.step as i64, region.y0 + i * region.step as i64);
         let hsh = hash(&[look.seed, x as u64, y as u64]);
-        for ch in 0..3 {
-            let lin = (c[ch] * look.exposure).clamp(0.0, 1.0);
+        for (ch, &value) in c.iter().enumerate() {
+            let lin = (value * look.exposure).clamp(0.0, 1.0);
             let v = gamma[(lin.sqrt() * (GAMMA_STEPS - 1) as f32) as usize];
             let h = hsh.rotate_left(21 * ch as u32);
             // Triangular noise from two 16-bit uniforms of the pixel's hash.

@@ -495,11 +495,11 @@ pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize) -> Result<World> {
     }
     let cam = camera.position();
     // Partial occluders on the line of sight to some labelled persons.
-    for i in 0..persons.len() {
+    let positions: Vec<V3> = persons.iter().map(|p| p.position).collect();
+    for p in positions {
         if !rng.random_bool(0.3) {
             continue;
         }
-        let p = persons[i].position;
         let v = sub(p, cam);
         let dist = norm([v[0], v[1], 0.0]);
         let dir = [v[0] / dist, v[1] / dist, 0.0];
