@@ -12,6 +12,10 @@ pub enum Error {
     /// A field is missing, has the wrong type or an unusable value.
     #[error("invalid field `{field}`: {message}")]
     InvalidField { field: String, message: String },
+    /// The request is valid but the sensors give a person too little to estimate a pose from
+    /// (no LiDAR point in the box); reported per person, not for the frame.
+    #[error("insufficient data in `{field}`: {message}")]
+    InsufficientData { field: String, message: String },
     /// The request body is larger than the configured limit.
     #[error("request body exceeds the limit of {limit} bytes")]
     PayloadTooLarge { limit: usize },
@@ -47,7 +51,7 @@ impl Error {
     /// The offending field, for errors about one.
     pub fn field_name(&self) -> Option<&str> {
         match self {
-            Error::InvalidField { field, .. } => Some(field),
+            Error::InvalidField { field, .. } | Error::InsufficientData { field, .. } => Some(field),
             _ => None,
         }
     }
@@ -57,6 +61,7 @@ impl Error {
         match self {
             Error::Malformed(_) => "malformed_request",
             Error::InvalidField { .. } => "invalid_field",
+            Error::InsufficientData { .. } => "insufficient_data",
             Error::PayloadTooLarge { .. } => "payload_too_large",
             Error::Overloaded => "overloaded",
             Error::NotFound(_) => "not_found",

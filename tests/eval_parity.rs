@@ -48,6 +48,8 @@ fn posefuse_eval_reproduces_the_trainers_metrics() {
         .current_dir(root().join("models-export"))))
     .expect("python JSON");
 
+    assert_eq!(rust["failed_frames"], 0, "{rust}");
+    assert_eq!(rust["skipped_persons"], py["skipped_persons"], "the same persons are skipped: {rust}\n{py}");
     let (r, p) = (&rust["metrics"]["all"], &py["metrics"]["all"]);
     assert_eq!(r["count_3d"], p["count_3d"], "the same persons are scored: {rust}\n{py}");
     assert!(r["count_3d"].as_u64().unwrap_or(0) >= 10, "too few persons scored: {rust}");

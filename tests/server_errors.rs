@@ -89,12 +89,6 @@ async fn each_class_of_bad_input_names_its_field() {
             422,
             "persons[0].box_2d.width",
         ),
-        (
-            "box without points",
-            Box::new(|v| v["persons"][0]["box_3d"]["center_y"] = json!(30.0)),
-            422,
-            "persons[0].box_3d",
-        ),
         ("no persons", Box::new(|v| v["persons"] = json!([])), 422, "persons"),
     ];
     for (name, mutate, want_status, want_field) in cases {
@@ -104,6 +98,37 @@ async fn each_class_of_bad_input_names_its_field() {
         let (_, field) = error_of(status, &body, want_status);
         assert_eq!(field, want_field, "{name}: {body}");
     }
+    s.shutdown().await.unwrap();
+}
+
+/// A person whose 3D box holds no LiDAR point is data the sensors lack, not a bad request: it is
+/// listed under `skipped` with the reason, and the frame's other persons are still answered.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_person_without_points_is_skipped_not_the_frame() {
+    let s = start(config()).await;
+    let mut v = frame_json();
+    let mut empty = v["persons"][0].clone();
+    empty["id"] = json!("far-away");
+    empty["box_3d"]["center_y"] = json!(30.0);
+    empty.as_object_mut().unwrap().remove("box_2d");
+    v["persons"].as_array_mut().unwrap().insert(0, empty.clone());
+    let (status, body) = post_json(&s, &v).await;
+    assert_eq!(status, 200, "{body}");
+    let answered: Vec<&str> = body["persons"].as_array().unwrap().iter().map(|p| p["id"].as_str().unwrap()).collect();
+    assert_eq!(answered, vec![v["persons"][1]["id"].as_str().unwrap()], "{body}");
+    let skipped = &body["skipped"];
+    assert_eq!(skipped.as_array().map(Vec::len), Some(1), "{body}");
+    assert_eq!((skipped[0]["index"].as_u64(), skipped[0]["id"].as_str()), (Some(0), Some("far-away")));
+    assert_eq!(skipped[0]["error"]["field"], "persons[0].box_3d", "{body}");
+    assert!(skipped[0]["error"]["message"].as_str().unwrap().contains("no LiDAR point"), "{body}");
+
+    // Alone in its frame: an answer with no poses, still not an error.
+    let mut alone = frame_json();
+    alone["persons"] = json!([empty]);
+    let (status, body) = post_json(&s, &alone).await;
+    assert_eq!(status, 200, "{body}");
+    assert_eq!(body["persons"].as_array().map(Vec::len), Some(0), "{body}");
+    assert_eq!(body["skipped"][0]["error"]["code"], "insufficient_data", "{body}");
     s.shutdown().await.unwrap();
 }
 

@@ -44,14 +44,12 @@ def server_modes(d: dict, cfg: PipelineConfig) -> np.ndarray:
     return np.where(d["points_count"] >= cfg.min_points, "fusion", "camera")
 
 
-def answerable_frames(d: dict, cfg: PipelineConfig) -> np.ndarray:
-    """Per person: whether the server answers its frame. It refuses a whole frame when one person
-    has no point in the box, or needs camera lifting without a point in front of the camera."""
+def answerable(d: dict, cfg: PipelineConfig) -> np.ndarray:
+    """Per person: whether the server gives a pose. It skips a person with no point in the box,
+    or one that needs camera lifting without a point in front of the camera."""
     no_points = d["points_count"] == 0
     no_uv = ~np.isfinite(d["serve_uv"]).all(axis=2).any(axis=1)
-    bad = no_points | ((d["points_count"] < cfg.min_points) & no_uv)
-    bad_frames = set(d["frame_index"][bad].tolist())
-    return ~np.isin(d["frame_index"], list(bad_frames))
+    return ~(no_points | ((d["points_count"] < cfg.min_points) & no_uv))
 
 
 def same_config(a: PipelineConfig, b: PipelineConfig) -> bool:
@@ -74,7 +72,8 @@ def evaluate_bundle(bundle: Path, root: Path, fixtures_only: bool, threads: int 
         frames = len(list((root / "requests").glob("frame-*.json")))
         keep &= d["frame_index"] < frames
     d = data_mod.subset(d, np.flatnonzero(keep))
-    ok = answerable_frames(d, cfg)
+    ok = answerable(d, cfg)
+    skipped = int((~ok).sum())
     d = data_mod.subset(d, np.flatnonzero(ok))
 
     opts = ort.SessionOptions()
@@ -91,7 +90,7 @@ def evaluate_bundle(bundle: Path, root: Path, fixtures_only: bool, threads: int 
     cam_pred = camera_only(heat, d, cfg)
     modes = server_modes(d, cfg)
     pred = np.where((modes == "fusion")[:, None, None], fusion_pred, cam_pred)
-    out = {"persons": int(len(pred)), "metrics": {"all": evaluate(pred, d, cfg)}}
+    out = {"persons": int(len(pred)), "skipped_persons": skipped, "metrics": {"all": evaluate(pred, d, cfg)}}
     for m in ("fusion", "camera"):
         sel = np.flatnonzero(modes == m)
         if len(sel):

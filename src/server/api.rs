@@ -39,8 +39,12 @@ pub struct PoseResponse {
     pub frame_id: Option<String>,
     /// The bundle that answered.
     pub model: ModelRef,
-    /// One entry per requested person, in request order.
+    /// One entry per answered person, in request order.
     pub persons: Vec<PersonPose>,
+    /// Requested persons without a pose (e.g. no LiDAR point in their box), in request order;
+    /// one person's missing data does not fail the frame. Omitted when empty.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub skipped: Vec<SkippedPerson>,
     /// Where the time went.
     pub timings: Timings,
 }
@@ -69,6 +73,17 @@ pub struct PersonPose {
     pub box_2d: Option<Box2d>,
     /// The 13 keypoints in the project's order.
     pub keypoints: Vec<KeypointPose>,
+}
+
+/// A requested person that got no pose, and why.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct SkippedPerson {
+    /// Position of the person in the request's `persons`, from 0.
+    pub index: usize,
+    /// The request's person id.
+    pub id: String,
+    /// Why no model could run (`code`, `message`, `field` as in error bodies).
+    pub error: ErrorDetail,
 }
 
 /// One keypoint.
@@ -139,6 +154,8 @@ pub struct EvaluateResponse {
     pub metrics: BTreeMap<String, MetricsReport>,
     /// Frames that failed (their persons are not scored).
     pub failed_frames: usize,
+    /// Persons with ground truth that got no pose (listed in their frame's `skipped`; not scored).
+    pub skipped_persons: usize,
 }
 
 /// `GET /healthz`, `GET /readyz`.

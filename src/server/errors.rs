@@ -10,7 +10,7 @@ use crate::error::Error;
 pub fn http_status(e: &Error) -> StatusCode {
     match e {
         Error::Malformed(_) => StatusCode::BAD_REQUEST,
-        Error::InvalidField { .. } => StatusCode::UNPROCESSABLE_ENTITY,
+        Error::InvalidField { .. } | Error::InsufficientData { .. } => StatusCode::UNPROCESSABLE_ENTITY,
         Error::PayloadTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
         Error::Overloaded => StatusCode::TOO_MANY_REQUESTS,
         Error::NotFound(_) => StatusCode::NOT_FOUND,
@@ -24,6 +24,7 @@ pub fn http_status(e: &Error) -> StatusCode {
 pub fn grpc_code(e: &Error) -> tonic::Code {
     match e {
         Error::Malformed(_) | Error::InvalidField { .. } => tonic::Code::InvalidArgument,
+        Error::InsufficientData { .. } => tonic::Code::FailedPrecondition,
         Error::PayloadTooLarge { .. } | Error::Overloaded => tonic::Code::ResourceExhausted,
         Error::NotFound(_) => tonic::Code::NotFound,
         Error::Timeout(_) => tonic::Code::DeadlineExceeded,
@@ -65,6 +66,11 @@ mod tests {
         let cases = [
             (Error::Malformed("x".into()), 400, tonic::Code::InvalidArgument),
             (Error::field("persons[0].box_3d", "bad"), 422, tonic::Code::InvalidArgument),
+            (
+                Error::InsufficientData { field: "persons[0].box_3d".into(), message: "no points".into() },
+                422,
+                tonic::Code::FailedPrecondition,
+            ),
             (Error::PayloadTooLarge { limit: 1 }, 413, tonic::Code::ResourceExhausted),
             (Error::Overloaded, 429, tonic::Code::ResourceExhausted),
             (Error::Timeout(5), 504, tonic::Code::DeadlineExceeded),

@@ -17,18 +17,24 @@ use crate::metrics::{MetricsAccumulator, MetricsReport};
 pub struct EvalAccumulator {
     all: MetricsAccumulator,
     by_mode: BTreeMap<Mode, MetricsAccumulator>,
+    skipped: usize,
 }
 
 impl EvalAccumulator {
-    /// Scores the persons of `frame` that carry ground truth against `resp` (same order):
-    /// 3D keypoints against the 3D box scale, and the projected 3D prediction (OKS@2D) against
-    /// 2D keypoints with the request's 2D box (else the box the server derived).
+    /// Scores the persons of `frame` that carry ground truth against `resp` (same order, less
+    /// the skipped ones, which are counted): 3D keypoints against the 3D box scale, and the
+    /// projected 3D prediction (OKS@2D) against 2D keypoints with the request's 2D box (else the
+    /// box the server derived).
     pub fn add(&mut self, frame: &Frame, resp: &PoseResponse) -> Result<()> {
-        if frame.persons.len() != resp.persons.len() {
+        let skipped: Vec<usize> = resp.skipped.iter().map(|s| s.index).collect();
+        if frame.persons.len() != resp.persons.len() + skipped.len() {
             return Err(Error::Runtime("response and request disagree on the number of persons".into()));
         }
         let camera = Camera::from_calibration(&frame.calibration)?;
-        for (person, pose) in frame.persons.iter().zip(&resp.persons) {
+        let answered = frame.persons.iter().enumerate().filter(|(i, _)| !skipped.contains(i));
+        self.skipped +=
+            frame.persons.iter().enumerate().filter(|(i, p)| skipped.contains(i) && p.ground_truth.is_some()).count();
+        for ((_, person), pose) in answered.zip(&resp.persons) {
             let Some(gt) = &person.ground_truth else { continue };
             let pred: Vec<[f64; 3]> = pose.keypoints.iter().map(|k| k.xyz).collect();
             let mut one = MetricsAccumulator::new();
@@ -42,6 +48,11 @@ impl EvalAccumulator {
             self.by_mode.entry(pose.mode).or_default().merge(&one);
         }
         Ok(())
+    }
+
+    /// Persons with ground truth that the server skipped (not scored).
+    pub fn skipped(&self) -> usize {
+        self.skipped
     }
 
     /// `all` plus one report per mode that ran.
@@ -66,6 +77,8 @@ pub struct EvalReport {
     pub mode: Option<crate::frame::RequestedMode>,
     pub frames: usize,
     pub failed_frames: usize,
+    /// Persons with ground truth that got no pose (no LiDAR point in the box, ...); not scored.
+    pub skipped_persons: usize,
     /// The first few failures (`file: message`).
     pub failures: Vec<String>,
     /// `all` and per mode.
@@ -76,12 +89,13 @@ impl EvalReport {
     /// Plain-text tables, one per mode.
     pub fn text(&self) -> String {
         let mut out = format!(
-            "model {} {} on {} ({} frames, {} failed)\n",
+            "model {} {} on {} ({} frames, {} failed; {} persons skipped)\n",
             self.model.name,
             self.model.version,
             self.data.display(),
             self.frames,
-            self.failed_frames
+            self.failed_frames,
+            self.skipped_persons
         );
         for f in &self.failures {
             out.push_str(&format!("  failed: {f}\n"));
@@ -153,6 +167,7 @@ pub async fn evaluate_frames(
         mode,
         frames: n,
         failed_frames: failed,
+        skipped_persons: acc.skipped(),
         failures,
         metrics: acc.reports(),
     })

@@ -154,6 +154,15 @@ pub fn response_to_proto(r: PoseResponse) -> proto::PredictResponse {
                     .collect(),
             })
             .collect(),
+        skipped: r
+            .skipped
+            .into_iter()
+            .map(|s| proto::SkippedPerson {
+                index: s.index as u32,
+                id: s.id,
+                error: Some(proto::Error { code: s.error.code, message: s.error.message }),
+            })
+            .collect(),
         timings: Some(proto::Timings {
             decode_ms: r.timings.decode_ms,
             preprocess_ms: r.timings.preprocess_ms,

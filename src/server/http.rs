@@ -318,6 +318,7 @@ async fn evaluate(
         predictions: results.into_iter().map(|(_, it)| it).collect(),
         metrics: acc.reports(),
         failed_frames: failed,
+        skipped_persons: acc.skipped(),
     }))
 }
 

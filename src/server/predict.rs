@@ -9,7 +9,7 @@ use std::time::{Duration, Instant};
 use base64::Engine;
 use image::RgbImage;
 
-use super::api::{KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, Timings};
+use super::api::{KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, SkippedPerson, Timings};
 use crate::error::{Error, Result};
 use crate::frame::{Box2d, Box3d, Frame, RequestedMode};
 use crate::geometry::{box2d_from_points, BoxFrame, Camera};
@@ -49,6 +49,8 @@ struct PersonPlan {
 struct FramePlan {
     camera: Camera,
     persons: Vec<PersonPlan>,
+    /// Persons no model can answer (their data, not the request, is lacking).
+    skipped: Vec<SkippedPerson>,
     decode: Duration,
     preprocess: Duration,
 }
@@ -129,6 +131,7 @@ impl Predictor {
             frame_id,
             model: ModelRef { name: m.name.clone(), version: m.version.clone() },
             persons,
+            skipped: plan.skipped,
             timings,
         })
     }
@@ -314,6 +317,11 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
     let decode = t0.elapsed();
     let t1 = Instant::now();
     let mut persons = Vec::with_capacity(frame.persons.len());
+    let mut skipped = Vec::new();
+    let mut skip = |index: usize, id: &str, e: Error| {
+        metrics::counter!("posefuse_persons_skipped_total").increment(1);
+        skipped.push(SkippedPerson { index, id: id.to_string(), error: super::errors::detail(&e) });
+    };
     for (i, person) in frame.persons.iter().enumerate() {
         let field = format!("persons[{i}]");
         let box_2d = match &person.box_2d {
@@ -339,10 +347,9 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
         let prepared = prepare_person(None, Some(&camera), &points, &person.box_3d, box_2d.as_ref(), cfg);
         let num_points = prepared.points.len();
         let Some(input) = prepared.input else {
-            return Err(Error::field(
-                format!("{field}.box_3d"),
-                format!("no LiDAR point lies inside the box (grown by {} m on every side)", cfg.box_margin),
-            ));
+            let why = format!("no LiDAR point lies inside the box (grown by {} m on every side)", cfg.box_margin);
+            skip(i, &person.id, Error::InsufficientData { field: format!("{field}.box_3d"), message: why });
+            continue;
         };
         let camera_problem: Option<(String, String)> = match (&image, box_2d) {
             (ImageState::Absent, _) => Some(("image".into(), "no image in the request".into())),
@@ -371,10 +378,9 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
             (RequestedMode::Camera, None) => (Mode::Camera, "requested".into()),
         };
         if mode == Mode::Camera && !input.uv.iter().any(|uv| uv[0].is_finite() && uv[1].is_finite()) {
-            return Err(Error::field(
-                format!("{field}.box_3d"),
-                "camera-only lifting needs points in front of the camera; none of the box's points are",
-            ));
+            let why = "camera-only lifting needs points in front of the camera; none of the box's points are";
+            skip(i, &person.id, Error::InsufficientData { field: format!("{field}.box_3d"), message: why.into() });
+            continue;
         }
         let image_input = match (mode, &image, prepared.crop.as_ref()) {
             (Mode::Fusion | Mode::Camera, ImageState::Decoded(img), Some(t)) => Some(normalize(&crop_rgb(img, t), cfg)),
@@ -394,7 +400,7 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
             image_input,
         });
     }
-    Ok(FramePlan { camera, persons, decode, preprocess: t1.elapsed() })
+    Ok(FramePlan { camera, persons, skipped, decode, preprocess: t1.elapsed() })
 }
 
 #[cfg(test)]
