@@ -80,6 +80,12 @@ def main(argv=None):
     p.add_argument("--point-optimizer", default=TrainPointConfig.optimizer, choices=["sgd", "adam"])
     p.add_argument("--rotate-deg", type=float, default=TrainPointConfig.rotate_deg)
     p.add_argument(
+        "--seg-weight",
+        type=float,
+        default=TrainPointConfig.seg_weight,
+        help="lambda; the segmentation loss is a mean over points (x N = the paper's sum)",
+    )
+    p.add_argument(
         "--budget-min",
         type=float,
         default=55.0,
@@ -87,6 +93,12 @@ def main(argv=None):
     )
     p.add_argument(
         "--camera-share", type=float, default=0.25, help="share of the training budget for the camera net"
+    )
+    p.add_argument(
+        "--smoothing-sigma",
+        type=float,
+        help="heatmap smoothing sigma in heatmap cells (default: the data's); the kernel is the odd "
+        "size 2*ceil(sigma)+1 (7 for the paper's sigma = 3)",
     )
     p.add_argument("--t-r", type=float, default=200.0, help="reliability temperature T_r (S units)")
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
@@ -113,6 +125,10 @@ def main(argv=None):
     test, test_cfg, test_meta = data_mod.load(a.test, a.limit_test)
     if cfg != test_cfg:
         raise SystemExit(f"train and test preprocessing differ:\n{cfg}\n{test_cfg}")
+    if a.smoothing_sigma is not None:
+        # Smoothing is the model's, not the data's: it goes into the bundle's manifest.
+        kernel = 2 * int(np.ceil(a.smoothing_sigma)) + 1
+        cfg = dataclasses.replace(cfg, smoothing_sigma=a.smoothing_sigma, smoothing_kernel=kernel)
     log(
         f"data: {len(train['kp2d'])} train, {len(test['kp2d'])} test persons, "
         f"S={cfg.image_size}, N={cfg.num_points}"
@@ -206,6 +222,7 @@ def main(argv=None):
             lr=a.point_lr,
             optimizer=a.point_optimizer,
             rotate_deg=a.rotate_deg,
+            seg_weight=a.seg_weight,
             time_budget_s=row_budget * (1.0 if first else 1.3),
         )
         net_cfg = PointNetConfig(in_features=3 + K if fusion else 3)

@@ -53,8 +53,11 @@ def answerable(d: dict, cfg: PipelineConfig) -> np.ndarray:
 
 
 def same_config(a: PipelineConfig, b: PipelineConfig) -> bool:
-    """Equal up to f32 rounding (the Rust side stores mean/std as f32)."""
+    """Equal up to f32 rounding (the Rust side stores mean/std as f32), smoothing aside: that is
+    the model's (the bundle's), not the data's."""
     da, db = a.to_dict(), b.to_dict()
+    for d in (da, db):
+        d.pop("smoothing_kernel"), d.pop("smoothing_sigma")
     return da.keys() == db.keys() and all(
         np.allclose(da[k], db[k], rtol=1e-6) if isinstance(da[k], (list, float)) else da[k] == db[k]
         for k in da

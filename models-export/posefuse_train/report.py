@@ -150,7 +150,20 @@ def backbone_table(b: dict) -> str:
     return md_table(header, body)
 
 
-def results_markdown(s: dict, backbones: dict | None = None) -> str:
+def by_range_table(table: list[dict]) -> str:
+    rows = [k for k in table[0] if k not in ("range_m", "persons", "mean_points")]
+    header = ["range (m)", "persons", "in-box points", *rows]
+    body = [
+        [c["range_m"], str(c["persons"]), f"{c['mean_points']:.0f}"]
+        + [f"{pct(c[r]['oks_acc_3d'])} / {cm(c[r]['mpjpe_3d_m'])}" for r in rows]
+        for c in table
+    ]
+    return md_table(header, body)
+
+
+def results_markdown(
+    s: dict, backbones: dict | None = None, by_range: list | None = None, notes: str | None = None
+) -> str:
     rows, pre, lq = s["rows"], s["preprocessing"], s["label_quality"]
     cam = rows["camera"]
     pc = next((r["config"] for k, r in rows.items() if k != "camera"), None)
@@ -217,6 +230,17 @@ def results_markdown(s: dict, backbones: dict | None = None) -> str:
             [[k, cm(v["mean_error_m"]), str(v["labels"])] for k, v in lq.items()],
         ),
     ]
+    if by_range:
+        lines += [
+            "",
+            "## By range: OKS@3D / MPJPE per LiDAR range band",
+            "",
+            "`python -m posefuse_train.by_range --run RUN --test TEST --rows ...` on this run's checkpoints.",
+            "",
+            by_range_table(by_range),
+        ]
+    if notes:
+        lines += ["", notes.strip()]
     if backbones:
         lines += [
             "",
@@ -243,7 +267,8 @@ def results_markdown(s: dict, backbones: dict | None = None) -> str:
 
 def main(argv=None):
     """Re-renders RESULTS.md from a finished run (e.g. to add the backbone study):
-    python -m posefuse_train.report runs/ablation/results.json --backbones runs/backbones/backbones.json"""
+    python -m posefuse_train.report runs/ablation/results.json --backbones runs/backbones/backbones.json \
+        --by-range runs/ablation/by_range.json --notes docs/results-analysis.md"""
     import argparse
     import json
     from pathlib import Path
@@ -253,11 +278,14 @@ def main(argv=None):
     )
     p.add_argument("results", help="results.json written by posefuse_train.ablation")
     p.add_argument("--backbones", help="backbones.json written by posefuse_train.backbones")
+    p.add_argument("--by-range", help="JSON written by posefuse_train.by_range --json")
+    p.add_argument("--notes", help="hand-written markdown (the analysis) placed after the tables")
     p.add_argument("--out", default="docs/RESULTS.md")
     a = p.parse_args(argv)
     summary = json.loads(Path(a.results).read_text())
-    backbones = json.loads(Path(a.backbones).read_text()) if a.backbones else None
-    Path(a.out).write_text(results_markdown(summary, backbones))
+    load = lambda path: json.loads(Path(path).read_text()) if path else None  # noqa: E731
+    notes = Path(a.notes).read_text() if a.notes else None
+    Path(a.out).write_text(results_markdown(summary, load(a.backbones), load(a.by_range), notes))
     print(f"wrote {a.out}")
 
 

@@ -64,3 +64,23 @@ def test_ablation_runs_end_to_end_and_writes_report_and_bundle(synthetic_sets, t
     again = json.loads((tmp_path / "again" / "manifest.json").read_text())
     assert again["training"]["trained"] is True and again["metrics"]["held_out"] == held_out
     assert again["preprocessing"] == manifest["preprocessing"]
+
+    # per-range breakdown of the saved checkpoints, and RESULTS.md re-rendered with it and notes
+    from posefuse_train.by_range import main as by_range_main
+    from posefuse_train.report import main as report_main
+
+    by_range_main(
+        ["--run", str(out), "--test", str(test), "--rows", "camera,lidar_reg_seg,fusion_reg_seg"]
+        + ["--json", str(tmp_path / "by_range.json")]
+    )
+    table = json.loads((tmp_path / "by_range.json").read_text())
+    assert sum(c["persons"] for c in table) <= 32 and table
+    for c in table:
+        assert {"camera", "lidar_reg_seg", "fusion_reg_seg"} <= set(c)
+    (tmp_path / "notes.md").write_text("## Our analysis\n\nhand-written")
+    report_main(
+        [str(out / "results.json"), "--by-range", str(tmp_path / "by_range.json")]
+        + ["--notes", str(tmp_path / "notes.md"), "--out", str(tmp_path / "R.md")]
+    )
+    md = (tmp_path / "R.md").read_text()
+    assert "## By range" in md and "## Our analysis" in md and "Table 3" in md

@@ -76,7 +76,7 @@ pub fn crop_rgb(image: &RgbImage, t: &CropTransform) -> RgbImage {
         let opts =
             ResizeOptions::new().resize_alg(ResizeAlg::Convolution(FilterType::Box)).crop(t.x0, t.y0, side, side);
         match fast_image_resize::images::ImageRef::new(image.width(), image.height(), image.as_raw(), PixelType::U8x3) {
-            Ok(view) => Resizer::new().resize(&view, &mut dst, &opts).is_ok(),
+            Ok(view) => resize(&view, &mut dst, &opts),
             Err(_) => false,
         }
     } else {
@@ -101,7 +101,7 @@ pub fn crop_rgb(image: &RgbImage, t: &CropTransform) -> RgbImage {
             side,
         );
         match Image::from_vec_u8(pw, ph, patch, PixelType::U8x3) {
-            Ok(src) => Resizer::new().resize(&src, &mut dst, &opts).is_ok(),
+            Ok(src) => resize(&src, &mut dst, &opts),
             Err(_) => false,
         }
     };
@@ -109,6 +109,15 @@ pub fn crop_rgb(image: &RgbImage, t: &CropTransform) -> RgbImage {
         out.as_mut().copy_from_slice(dst.buffer());
     }
     out
+}
+
+thread_local! {
+    // A resizer keeps its scratch buffers: one per thread instead of one per crop.
+    static RESIZER: std::cell::RefCell<Resizer> = std::cell::RefCell::new(Resizer::new());
+}
+
+fn resize(src: &impl fast_image_resize::IntoImageView, dst: &mut Image, opts: &ResizeOptions) -> bool {
+    RESIZER.with(|r| r.try_borrow_mut().is_ok_and(|mut r| r.resize(src, dst, opts).is_ok()))
 }
 
 /// CHW float tensor `[3, S, S]`: `(value / 255 − mean) / std` per channel.
@@ -121,12 +130,17 @@ pub fn normalize(crop: &RgbImage, cfg: &PipelineConfig) -> Vec<f32> {
 /// [`normalize`] into a caller-owned buffer of `3·S·S` floats (batch assembly without copies).
 pub fn normalize_into(crop: &RgbImage, cfg: &PipelineConfig, out: &mut [f32]) {
     let plane = crop.width() as usize * crop.height() as usize;
-    let scale: [f32; 3] = std::array::from_fn(|c| 1.0 / (255.0 * cfg.std[c]));
-    let shift: [f32; 3] = std::array::from_fn(|c| cfg.mean[c] / cfg.std[c]);
-    for (i, px) in crop.as_raw().chunks_exact(3).enumerate().take(plane) {
-        for c in 0..3 {
-            out[c * plane + i] = px[c] as f32 * scale[c] - shift[c];
-        }
+    // One table lookup per value: the same `v · scale − shift` in f32, without per-value math.
+    let lut: [[f32; 256]; 3] = std::array::from_fn(|c| {
+        let (scale, shift) = (1.0 / (255.0 * cfg.std[c]), cfg.mean[c] / cfg.std[c]);
+        std::array::from_fn(|v| v as f32 * scale - shift)
+    });
+    let (r, rest) = out.split_at_mut(plane);
+    let (g, b) = rest.split_at_mut(plane);
+    for (((px, r), g), b) in crop.as_raw().chunks_exact(3).zip(r).zip(g).zip(b.iter_mut().take(plane)) {
+        *r = lut[0][px[0] as usize];
+        *g = lut[1][px[1] as usize];
+        *b = lut[2][px[2] as usize];
     }
 }
 
