@@ -2,6 +2,10 @@
 //! default bundle sent sequentially (HTTP JSON and gRPC), and the camera + point-fusion sessions
 //! run directly on the same model inputs. `cargo bench --bench server`; results in BENCHMARKS.md.
 
+// The allocator of the `posefuse` binary, so that the numbers are the server's.
+#[global_allocator]
+static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
+
 #[path = "../tests/server_support/mod.rs"]
 mod server_support;
 
