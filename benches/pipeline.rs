@@ -66,11 +66,11 @@ fn bench_person(c: &mut Criterion, image_size: u32) {
     let frame = posefuse::geometry::BoxFrame::new(&box3d);
     c.bench_function(&format!("points_s{image_size}"), |b| {
         b.iter(|| {
-            let pp = gather_points(&points, &frame, Some(&cam), Some(&t), &cfg);
-            black_box(point_input(&pp, &cfg))
+            let pp = gather_points(&points, &frame, &cfg);
+            black_box(point_input(&pp, Some(&cam), Some(&t), &cfg))
         })
     });
-    let uv = point_input(&gather_points(&points, &frame, Some(&cam), Some(&t), &cfg), &cfg)
+    let uv = point_input(&gather_points(&points, &frame, &cfg), Some(&cam), Some(&t), &cfg)
         .map(|i| i.uv)
         .unwrap_or_default();
     c.bench_function(&format!("fusion_s{image_size}"), |b| {

@@ -69,7 +69,10 @@ pub fn crop_rgb(image: &RgbImage, t: &CropTransform) -> RgbImage {
     let ix1 = (t.x0 + side).ceil() as i64 + margin;
     let iy1 = (t.y0 + side).ceil() as i64 + margin;
     let (iw, ih) = (image.width() as i64, image.height() as i64);
-    let mut dst = Image::new(s, s, PixelType::U8x3);
+    // the resize writes straight into the returned image's buffer
+    let Ok(mut dst) = Image::from_slice_u8(s, s, out.as_mut(), PixelType::U8x3) else {
+        return RgbImage::new(s, s);
+    };
     let inside = ix0 >= 0 && iy0 >= 0 && ix1 <= iw && iy1 <= ih;
     let done = if inside {
         // the filter reads at most `margin` pixels around the window, all inside the image
@@ -105,8 +108,10 @@ pub fn crop_rgb(image: &RgbImage, t: &CropTransform) -> RgbImage {
             Err(_) => false,
         }
     };
-    if done {
-        out.as_mut().copy_from_slice(dst.buffer());
+    drop(dst);
+    if !done {
+        // a refused resize (never expected: the crop box is checked above) leaves no half image
+        out.as_mut().fill(0);
     }
     out
 }
@@ -122,26 +127,18 @@ fn resize(src: &impl fast_image_resize::IntoImageView, dst: &mut Image, opts: &R
 
 /// CHW float tensor `[3, S, S]`: `(value / 255 − mean) / std` per channel.
 pub fn normalize(crop: &RgbImage, cfg: &PipelineConfig) -> Vec<f32> {
-    let mut out = vec![0.0; 3 * crop.width() as usize * crop.height() as usize];
-    normalize_into(crop, cfg, &mut out);
-    out
-}
-
-/// [`normalize`] into a caller-owned buffer of `3·S·S` floats (batch assembly without copies).
-pub fn normalize_into(crop: &RgbImage, cfg: &PipelineConfig, out: &mut [f32]) {
-    let plane = crop.width() as usize * crop.height() as usize;
     // One table lookup per value: the same `v · scale − shift` in f32, without per-value math.
     let lut: [[f32; 256]; 3] = std::array::from_fn(|c| {
         let (scale, shift) = (1.0 / (255.0 * cfg.std[c]), cfg.mean[c] / cfg.std[c]);
         std::array::from_fn(|v| v as f32 * scale - shift)
     });
-    let (r, rest) = out.split_at_mut(plane);
-    let (g, b) = rest.split_at_mut(plane);
-    for (((px, r), g), b) in crop.as_raw().chunks_exact(3).zip(r).zip(g).zip(b.iter_mut().take(plane)) {
-        *r = lut[0][px[0] as usize];
-        *g = lut[1][px[1] as usize];
-        *b = lut[2][px[2] as usize];
+    let raw = crop.as_raw();
+    // filled plane by plane from exact-size iterators: the tensor is written once, never zeroed
+    let mut out = Vec::with_capacity(raw.len());
+    for (c, table) in lut.iter().enumerate() {
+        out.extend(raw.chunks_exact(3).map(|px| table[px[c] as usize]));
     }
+    out
 }
 
 #[cfg(test)]

@@ -94,31 +94,53 @@ pub fn smoothed_features(
     let g = gaussian_1d(cfg.smoothing_kernel, cfg.smoothing_sigma);
     let r = g.len() / 2;
     let mut out = vec![0.0f32; uv.len() * k];
-    let mut cache: std::collections::HashMap<(usize, usize), usize> = std::collections::HashMap::new();
-    for (n, p) in uv.iter().enumerate() {
-        if !(p[0].is_finite() && p[1].is_finite()) {
-            continue;
-        }
-        let (i, j) = (cell_index(p[1], h, cfg.image_size), cell_index(p[0], w, cfg.image_size));
-        if let Some(&done) = cache.get(&(i, j)) {
+    let cells: Vec<Option<(usize, usize)>> = uv
+        .iter()
+        .map(|p| {
+            (p[0].is_finite() && p[1].is_finite())
+                .then(|| (cell_index(p[1], h, cfg.image_size), cell_index(p[0], w, cfg.image_size)))
+        })
+        .collect();
+    // Row-smoothed values are shared by vertically neighbouring cells: each is computed once,
+    // for all channels, within the window the points need.
+    let Some((i0, i1, j0, j1)) =
+        cells.iter().flatten().fold(None, |b: Option<(usize, usize, usize, usize)>, &(i, j)| {
+            Some(b.map_or((i, i, j, j), |(a0, a1, b0, b1)| (a0.min(i), a1.max(i), b0.min(j), b1.max(j))))
+        })
+    else {
+        return out;
+    };
+    let (i0, i1) = (i0.saturating_sub(r), (i1 + r).min(h - 1));
+    let bw = j1 - j0 + 1;
+    let window = (i1 - i0 + 1) * bw;
+    let mut row_smoothed = vec![0.0f32; window * k];
+    let mut smoothed_done = vec![false; window];
+    // points falling in one cell share its features: the first such point's row, per cell
+    let mut first = vec![u32::MAX; window];
+    for (n, cell) in cells.iter().enumerate() {
+        let Some((i, j)) = *cell else { continue };
+        let done = first[(i - i0) * bw + j - j0] as usize;
+        if done < n {
             out.copy_within(done * k..(done + 1) * k, n * k);
             continue;
         }
-        cache.insert((i, j), n);
+        first[(i - i0) * bw + j - j0] = n as u32;
         let (jlo, jhi) = (j.saturating_sub(r), (j + r).min(w - 1));
         let (ilo, ihi) = (i.saturating_sub(r), (i + r).min(h - 1));
-        for c in 0..k {
-            let src = &heatmaps[c * h * w..(c + 1) * h * w];
-            let mut acc = 0.0f32;
-            for ii in ilo..=ihi {
-                let row = &src[ii * w..(ii + 1) * w];
-                let mut rs = 0.0f32;
-                for jj in jlo..=jhi {
-                    rs += row[jj] * g[jj + r - j];
+        let (gx, gy) = (&g[jlo + r - j..=jhi + r - j], &g[ilo + r - i..=ihi + r - i]);
+        for (ii, wy) in (ilo..=ihi).zip(gy) {
+            let at = (ii - i0) * bw + j - j0;
+            let rows = &mut row_smoothed[at * k..(at + 1) * k];
+            if !smoothed_done[at] {
+                smoothed_done[at] = true;
+                for (c, v) in rows.iter_mut().enumerate() {
+                    let row = &heatmaps[c * h * w + ii * w + jlo..=c * h * w + ii * w + jhi];
+                    *v = row.iter().zip(gx).fold(0.0f32, |s, (x, wx)| s + x * wx);
                 }
-                acc += g[ii + r - i] * rs;
             }
-            out[n * k + c] = acc;
+            for (o, v) in out[n * k..(n + 1) * k].iter_mut().zip(rows.iter()) {
+                *o += wy * v;
+            }
         }
     }
     out
@@ -195,5 +217,22 @@ mod tests {
             fused_points(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], &f, k),
             vec![1., 2., 3., 6., 22., 4., 5., 6., 0., 0.]
         );
+    }
+
+    #[test]
+    fn smoothing_only_the_sampled_cells_equals_smoothing_everything() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(3);
+        let (k, h, w) = (13, 16, 16);
+        let cfg =
+            PipelineConfig { image_size: 64, smoothing_kernel: 7, smoothing_sigma: 3.0, ..PipelineConfig::default() };
+        let hm: Vec<f32> = (0..k * h * w).map(|_| rng.random::<f32>()).collect();
+        // corners, edges, repeated cells, points outside the crop and without a projection
+        let mut uv: Vec<[f32; 2]> =
+            (0..300).map(|_| [rng.random_range(-8.0..72.0), rng.random_range(-8.0..72.0)]).collect();
+        uv.extend([[0.0, 0.0], [63.9, 63.9], [0.0, 63.9], [f32::NAN, 3.0], [f32::INFINITY, 1.0], [10.0, 10.0]]);
+        let lazy = smoothed_features(&hm, k, h, w, &uv, &cfg);
+        assert_eq!(lazy, sample_features(&smooth_heatmaps(&hm, k, h, w, &cfg), k, h, w, &uv, 64));
+        assert!(lazy.iter().any(|v| *v != 0.0));
     }
 }

@@ -9,12 +9,12 @@ mod points;
 mod prepare;
 
 pub use config::PipelineConfig;
-pub use crop::{crop_rgb, normalize, normalize_into, CropTransform};
+pub use crop::{crop_rgb, normalize, CropTransform};
 pub use fusion::{
     cell_index, fused_points, gaussian_kernel, lidar_points, sample_features, smooth_heatmaps, smoothed_features,
 };
 pub use lift::{decode_heatmaps, lift, reliability};
 pub use points::{
-    from_local, gather_points, input_seed, point_input, select_indices, to_local, PersonPoints, PointInput,
+    from_local, gather_points, input_seed, model_uv, point_input, select_indices, to_local, PersonPoints, PointInput,
 };
 pub use prepare::{keypoints_to_pixels, keypoints_to_vehicle, prepare_person, PreparedPerson};

@@ -14,8 +14,6 @@ pub struct PersonPoints {
     pub local: Vec<[f32; 3]>,
     /// The same points in the vehicle frame, as they arrived.
     pub vehicle: Vec<[f32; 3]>,
-    /// Their projections in model-input pixels; NaN behind the camera or without a camera.
-    pub model_uv: Vec<[f32; 2]>,
 }
 
 impl PersonPoints {
@@ -25,6 +23,28 @@ impl PersonPoints {
 
     pub fn is_empty(&self) -> bool {
         self.local.is_empty()
+    }
+
+    /// Every point's projection in model-input pixels (see [`model_uv`]).
+    pub fn model_uv(&self, camera: Option<&Camera>, crop: Option<&CropTransform>) -> Vec<[f32; 2]> {
+        self.vehicle.iter().map(|p| model_uv(p, camera, crop)).collect()
+    }
+}
+
+/// A vehicle-frame point's projection in model-input pixels; NaN behind the camera or without
+/// a camera and a crop.
+pub fn model_uv(p: &[f32; 3], camera: Option<&Camera>, crop: Option<&CropTransform>) -> [f32; 2] {
+    match (camera, crop) {
+        (Some(cam), Some(t)) => {
+            let pr = cam.project([p[0] as f64, p[1] as f64, p[2] as f64]);
+            if pr.in_front {
+                let mp = t.to_model(pr.uv);
+                [mp[0] as f32, mp[1] as f32]
+            } else {
+                [f32::NAN; 2]
+            }
+        }
+        _ => [f32::NAN; 2],
     }
 }
 
@@ -55,14 +75,9 @@ pub fn from_local(b: &BoxFrame, q: [f64; 3], cfg: &PipelineConfig) -> [f64; 3] {
     }
 }
 
-/// The points of `points` (vehicle frame) inside `b` grown by `cfg.box_margin`.
-pub fn gather_points(
-    points: &[[f32; 3]],
-    b: &BoxFrame,
-    camera: Option<&Camera>,
-    crop: Option<&CropTransform>,
-    cfg: &PipelineConfig,
-) -> PersonPoints {
+/// The points of `points` (vehicle frame) inside `b` grown by `cfg.box_margin`. Projection waits
+/// for [`point_input`]: only the N chosen points need it.
+pub fn gather_points(points: &[[f32; 3]], b: &BoxFrame, cfg: &PipelineConfig) -> PersonPoints {
     let m = cfg.box_margin;
     // An axis-aligned bound of the rotated box rejects most of a sweep with three compares.
     let reach = ((b.size[0] / 2.0 + m).powi(2) + (b.size[1] / 2.0 + m).powi(2)).sqrt();
@@ -80,21 +95,8 @@ pub fn gather_points(
             continue;
         }
         let l = if cfg.rotate_by_heading { boxed } else { to_local(b, q, cfg) };
-        let uv = match (camera, crop) {
-            (Some(cam), Some(t)) => {
-                let pr = cam.project(q);
-                if pr.in_front {
-                    let mp = t.to_model(pr.uv);
-                    [mp[0] as f32, mp[1] as f32]
-                } else {
-                    [f32::NAN; 2]
-                }
-            }
-            _ => [f32::NAN; 2],
-        };
         out.local.push([l[0] as f32, l[1] as f32, l[2] as f32]);
         out.vehicle.push(*p);
-        out.model_uv.push(uv);
     }
     out
 }
@@ -128,15 +130,21 @@ pub fn select_indices(count: usize, n: usize, seed: u64) -> Vec<usize> {
     }
 }
 
-/// The network's N points for a person, or `None` when the box holds no points.
-pub fn point_input(pp: &PersonPoints, cfg: &PipelineConfig) -> Option<PointInput> {
+/// The network's N points for a person with their model-input pixels (NaN without a camera and
+/// a crop), or `None` when the box holds no points.
+pub fn point_input(
+    pp: &PersonPoints,
+    camera: Option<&Camera>,
+    crop: Option<&CropTransform>,
+    cfg: &PipelineConfig,
+) -> Option<PointInput> {
     if pp.is_empty() {
         return None;
     }
     let indices = select_indices(pp.len(), cfg.num_points as usize, input_seed(&pp.vehicle));
     Some(PointInput {
         xyz: indices.iter().map(|&i| pp.local[i]).collect(),
-        uv: indices.iter().map(|&i| pp.model_uv[i]).collect(),
+        uv: indices.iter().map(|&i| model_uv(&pp.vehicle[i], camera, crop)).collect(),
         indices,
     })
 }
@@ -164,12 +172,12 @@ mod tests {
         let b = person_box();
         // heading 90°: the box's length (0.6) runs along vehicle y, its width (0.8) along x.
         let pts = [[10.35, 2.0, 0.9], [10.0, 2.4, 0.9], [10.0, 2.5, 0.9], [10.0, 2.0, 1.9], [10.0, 2.0, 1.96]];
-        let pp = gather_points(&pts, &b, None, None, &cfg);
+        let pp = gather_points(&pts, &b, &cfg);
         assert_eq!(pp.vehicle, vec![pts[0], pts[1], pts[3]]);
         // local: x along heading (vehicle +y), y to the left of it (vehicle −x)
         let l = pp.local[0];
         assert!((l[0] - 0.0).abs() < 1e-6 && (l[1] + 0.35).abs() < 1e-6 && l[2].abs() < 1e-6);
-        assert!(pp.model_uv.iter().all(|uv| uv[0].is_nan()));
+        assert!(pp.model_uv(None, None).iter().all(|uv| uv[0].is_nan()));
         let q = from_local(&b, [0.1, -0.35, 0.2], &cfg);
         let back = to_local(&b, q, &cfg);
         assert!((back[0] - 0.1).abs() < 1e-12 && (back[1] + 0.35).abs() < 1e-12 && (back[2] - 0.2).abs() < 1e-12);
@@ -198,15 +206,15 @@ mod tests {
         let b = person_box();
         let pts: Vec<[f32; 3]> =
             (0..40).map(|i| [10.0, 2.0 + (i as f32 - 20.0) * 0.01, 0.2 + 0.03 * i as f32]).collect();
-        let pp = gather_points(&pts, &b, None, None, &cfg);
-        let a = point_input(&pp, &cfg).unwrap_or_else(|| panic!("points expected"));
+        let pp = gather_points(&pts, &b, &cfg);
+        let a = point_input(&pp, None, None, &cfg).unwrap_or_else(|| panic!("points expected"));
         assert_eq!(a.xyz.len(), 16);
-        let again = point_input(&pp, &cfg).unwrap_or_else(|| panic!("points expected"));
+        let again = point_input(&pp, None, None, &cfg).unwrap_or_else(|| panic!("points expected"));
         assert_eq!((&a.indices, &a.xyz), (&again.indices, &again.xyz));
         for (row, &i) in a.indices.iter().enumerate() {
             assert_eq!(a.xyz[row], pp.local[i]);
         }
         assert_ne!(input_seed(&pts), input_seed(&pts[1..]));
-        assert!(point_input(&PersonPoints::default(), &cfg).is_none());
+        assert!(point_input(&PersonPoints::default(), None, None, &cfg).is_none());
     }
 }

@@ -39,8 +39,8 @@ pub fn prepare_person(
         (Some(img), Some(t)) => Some(crop_rgb(img, t)),
         _ => None,
     };
-    let pts = gather_points(points, &box_frame, camera, crop.as_ref(), cfg);
-    let input = point_input(&pts, cfg);
+    let pts = gather_points(points, &box_frame, cfg);
+    let input = point_input(&pts, camera, crop.as_ref(), cfg);
     PreparedPerson { box_frame, crop, crop_rgb: crop_img, points: pts, input }
 }
 

@@ -233,8 +233,9 @@ pub fn simulate_frame(
             Some(c) => c,
             None => render_crop(&world, &t)?,
         };
-        let sample = make_sample(&world, p, &labels, &prepared, &t, crop, cfg, points_cap, index, &calib);
-        out.stats.push(sample_stats(&sample, p, &labels, &prepared.points.model_uv, on_person, &t, near_px));
+        let points_uv = prepared.points.model_uv(Some(cam), Some(&t));
+        let sample = make_sample(&world, p, &labels, &prepared, &points_uv, &t, crop, cfg, points_cap, index, &calib);
+        out.stats.push(sample_stats(&sample, p, &labels, &points_uv, on_person, &t, near_px));
         out.samples.push(sample);
         if with_fixture {
             fixture_persons.push(Person {
@@ -271,6 +272,7 @@ fn make_sample(
     p: &super::world::PlacedPerson,
     labels: &PersonLabels,
     prepared: &crate::pipeline::PreparedPerson,
+    points_uv: &[[f32; 2]],
     t: &CropTransform,
     crop: RgbImage,
     cfg: &PipelineConfig,
@@ -293,7 +295,7 @@ fn make_sample(
     Sample {
         image: crop.into_raw(),
         points_xyz: keep.iter().map(|&i| pts.local[i]).collect(),
-        points_uv: keep.iter().map(|&i| pts.model_uv[i]).collect(),
+        points_uv: keep.iter().map(|&i| points_uv[i]).collect(),
         serve_xyz,
         serve_uv,
         kp2d: labels.uv_label.map(|u| f32x(t.to_model(u))),
