@@ -140,6 +140,15 @@ fn main() {
             t.elapsed()
         })
     };
+    let health_once = || {
+        rt.block_on(async {
+            let t = Instant::now();
+            let r = client.get(server.url("/healthz")).send().await.unwrap();
+            assert_eq!(r.status(), 200);
+            r.bytes().await.unwrap();
+            t.elapsed()
+        })
+    };
     let raw_once = |models: &mut Models| {
         let t = Instant::now();
         models.run(ModelKind::Camera, 1, &image_input).unwrap();
@@ -151,16 +160,18 @@ fn main() {
         grpc_once();
     }
     // Interleave so that machine load drifts hit all three alike.
-    let (mut raw, mut http, mut g) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut raw, mut http, mut g, mut health) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for _ in 0..n {
         raw.push(raw_once(&mut models));
         http.push(http_once());
         g.push(grpc_once());
+        health.push(health_once());
     }
     println!("request body {} bytes (640x480 PNG, 300 points)", body.len());
     let (raw50, raw99) = summary("raw ONNX Runtime (camera + fusion)", raw);
     let (h50, h99) = summary("HTTP POST /v1/poses", http);
     let (g50, g99) = summary("gRPC Predict", g);
+    summary("HTTP GET /healthz (transport floor)", health);
     let t = server_times.borrow();
     let mean = |f: fn(&posefuse::server::api::Timings) -> f64| t.iter().map(f).sum::<f64>() / t.len() as f64;
     println!(

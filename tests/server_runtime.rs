@@ -50,3 +50,46 @@ async fn queued_jobs_form_one_batch_with_unchanged_outputs() {
     let e = rt.infer(ModelKind::Camera, vec![0.0; 3]).await.unwrap_err();
     assert!(e.to_string().contains("camera"), "{e}");
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_chain_equals_its_two_jobs_and_batches_with_others() {
+    let bundle = Arc::new(Bundle::load(&model_dir()).unwrap());
+    let cfg = RuntimeConfig { max_batch: 8, ..RuntimeConfig::default() };
+    let rt = Arc::new(tokio::task::spawn_blocking(move || Runtime::start(bundle, &cfg)).await.unwrap().unwrap());
+    assert!(rt.wait_ready(Duration::from_secs(60)));
+    let (cam_len, pt_len) =
+        (rt.bundle().io(ModelKind::Camera).input_len(), rt.bundle().io(ModelKind::PointFusion).input_len());
+    // a step that depends on the heatmaps, so a wrong hand-over shows in the point output
+    let step = move |h: &[f32]| -> Vec<f32> { (0..pt_len).map(|i| h[i % h.len()] * 2.0 - 0.5).collect() };
+
+    let heatmaps = rt.infer(ModelKind::Camera, input(cam_len, 2.0)).await.unwrap().data;
+    let points = rt.infer(ModelKind::PointFusion, step(&heatmaps)).await.unwrap().data;
+    let chained = rt.infer_chain(input(cam_len, 2.0), ModelKind::PointFusion, Box::new(step)).await.unwrap();
+    assert_eq!(chained.camera.as_deref(), Some(heatmaps.as_slice()));
+    assert_eq!(chained.data, points);
+
+    // Chains queued together share the camera batch and the point batch.
+    let pause = rt.pause();
+    let jobs: Vec<_> = (0..3)
+        .map(|i| {
+            let rt = rt.clone();
+            tokio::spawn(async move {
+                rt.infer_chain(input(cam_len, 3.0 + i as f32), ModelKind::PointFusion, Box::new(step)).await
+            })
+        })
+        .collect();
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    drop(pause);
+    let mut outs = Vec::new();
+    for j in jobs {
+        outs.push(j.await.unwrap().unwrap());
+    }
+    assert!(outs[1..].iter().all(|o| o.batch >= 2), "{:?}", outs.iter().map(|o| o.batch).collect::<Vec<_>>());
+    assert!(outs.iter().all(|o| o.camera.as_ref().is_some_and(|h| h.len() == heatmaps.len())));
+
+    // A chain must end in a point network, and a step of the wrong size is an error, not a panic.
+    let e = rt.infer_chain(input(cam_len, 1.0), ModelKind::Camera, Box::new(step)).await.unwrap_err();
+    assert!(e.to_string().contains("point network"), "{e}");
+    let e = rt.infer_chain(input(cam_len, 1.0), ModelKind::PointFusion, Box::new(|_: &[f32]| vec![0.0; 5])).await;
+    assert!(e.unwrap_err().to_string().contains("expected"));
+}

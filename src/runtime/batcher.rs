@@ -1,7 +1,9 @@
 //! The inference queue: requests post jobs into one bounded channel; worker threads (each owning
 //! its own sessions) take whatever is queued, up to `max_batch` jobs, optionally waiting
-//! `batch_wait` for more, and run one batch per network. Inference never runs on the async
-//! executor, and a full queue is refused at once instead of growing latency without bound.
+//! `batch_wait` for more, and run one batch per network. A fusion person is one job: its camera
+//! output becomes its point input on the worker, so it crosses threads once, not twice. Inference
+//! never runs on the async executor, and a full queue is refused at once instead of growing
+//! latency without bound.
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
@@ -49,21 +51,44 @@ impl Default for RuntimeConfig {
 /// What a job gives back.
 #[derive(Debug, Clone)]
 pub struct JobOutput {
-    /// This item's output (`io.output_len()` floats).
+    /// This item's output (`io.output_len()` floats); for a chain, the point network's.
     pub data: Vec<f32>,
+    /// A chain's camera output (its heatmaps).
+    pub camera: Option<Vec<f32>>,
     /// Time spent waiting in the queue.
     pub queue: Duration,
-    /// Time of the batch's inference call.
+    /// Time of the batch's inference calls (both networks for a chain).
     pub inference: Duration,
-    /// Size of the batch it ran in.
+    /// Time a chain spent turning camera output into point input.
+    pub between: Duration,
+    /// Size of the (last) batch it ran in.
     pub batch: usize,
 }
 
+/// Turns a chain's camera output into its point network's input.
+pub type ChainStep = Box<dyn FnOnce(&[f32]) -> Vec<f32> + Send>;
+
+enum Work {
+    Single { kind: ModelKind, input: Vec<f32> },
+    Chain { camera: Vec<f32>, point: ModelKind, then: ChainStep },
+}
+
 struct Job {
-    kind: ModelKind,
-    input: Vec<f32>,
+    work: Work,
     enqueued: Instant,
     reply: oneshot::Sender<Result<JobOutput>>,
+}
+
+/// A camera-batch entry: the item, its input, and for a chain the point network and the step.
+type CameraEntry = (Item, Vec<f32>, Option<(ModelKind, ChainStep)>);
+
+/// A job's place in the batches of one worker round.
+struct Item {
+    job_reply: oneshot::Sender<Result<JobOutput>>,
+    queue: Duration,
+    camera: Option<Vec<f32>>,
+    inference: Duration,
+    between: Duration,
 }
 
 /// Stops workers from taking jobs while held (load-shedding and drain tests, maintenance).
@@ -203,13 +228,32 @@ impl Runtime {
 
     /// Queues one item for `kind` and waits for its output. Refuses at once when the queue is full.
     pub async fn infer(&self, kind: ModelKind, input: Vec<f32>) -> Result<JobOutput> {
-        let want = self.bundle.io(kind).input_len();
-        if input.len() != want {
-            return Err(Error::Runtime(format!("{}: input of {} floats, expected {want}", kind.key(), input.len())));
+        self.check_len(kind, input.len())?;
+        self.submit(Work::Single { kind, input }).await
+    }
+
+    /// Runs the camera network on `camera`, `then` on its output, and the `point` network on
+    /// that, in one job: the camera output is returned beside the point output.
+    pub async fn infer_chain(&self, camera: Vec<f32>, point: ModelKind, then: ChainStep) -> Result<JobOutput> {
+        self.check_len(ModelKind::Camera, camera.len())?;
+        if point == ModelKind::Camera {
+            return Err(Error::Runtime("a chain ends in a point network".into()));
         }
+        self.submit(Work::Chain { camera, point, then }).await
+    }
+
+    fn check_len(&self, kind: ModelKind, len: usize) -> Result<()> {
+        let want = self.bundle.io(kind).input_len();
+        if len != want {
+            return Err(Error::Runtime(format!("{}: input of {len} floats, expected {want}", kind.key())));
+        }
+        Ok(())
+    }
+
+    async fn submit(&self, work: Work) -> Result<JobOutput> {
         let (reply, rx) = oneshot::channel();
         let tx = self.tx.as_ref().ok_or_else(|| Error::Unavailable("shutting down".into()))?;
-        match tx.try_send(Job { kind, input, enqueued: Instant::now(), reply }) {
+        match tx.try_send(Job { work, enqueued: Instant::now(), reply }) {
             Ok(()) => {}
             Err(TrySendError::Full(_)) => return Err(Error::Overloaded),
             Err(TrySendError::Disconnected(_)) => return Err(Error::Unavailable("shutting down".into())),
@@ -257,38 +301,103 @@ fn worker_loop(models: &mut Models, rx: &Receiver<Job>, gate: &Gate, max_batch: 
         }
         // Callers that gave up (timeout, disconnect) are not worth computing for.
         jobs.retain(|j| !j.reply.is_closed());
-        let mut by_kind: [Vec<Job>; 3] = Default::default();
-        for j in jobs {
-            let slot = ModelKind::ALL.iter().position(|k| *k == j.kind).unwrap_or(0);
-            by_kind[slot].push(j);
-        }
-        for (kind, group) in ModelKind::ALL.into_iter().zip(by_kind) {
-            if !group.is_empty() {
-                run_batch(models, kind, group);
+        run_round(models, jobs);
+    }
+}
+
+/// One round: the camera batch (camera jobs and chains) first, then chains' point inputs, then
+/// one batch per point network.
+fn run_round(models: &mut Models, jobs: Vec<Job>) {
+    let started = Instant::now();
+    let item = |reply, enqueued: Instant, kind: ModelKind| {
+        let queue = started.saturating_duration_since(enqueued);
+        metrics::histogram!("posefuse_queue_wait_seconds", "model" => kind.key()).record(queue.as_secs_f64());
+        Item { job_reply: reply, queue, camera: None, inference: Duration::ZERO, between: Duration::ZERO }
+    };
+    let mut camera: Vec<CameraEntry> = Vec::new();
+    let mut points: [Vec<(Item, Vec<f32>)>; 3] = Default::default();
+    for j in jobs {
+        match j.work {
+            Work::Single { kind: ModelKind::Camera, input } => {
+                camera.push((item(j.reply, j.enqueued, ModelKind::Camera), input, None))
             }
+            Work::Single { kind, input } => points[slot(kind)].push((item(j.reply, j.enqueued, kind), input)),
+            Work::Chain { camera: input, point, then } => {
+                camera.push((item(j.reply, j.enqueued, ModelKind::Camera), input, Some((point, then))))
+            }
+        }
+    }
+    if !camera.is_empty() {
+        let inputs: Vec<&[f32]> = camera.iter().map(|c| c.1.as_slice()).collect();
+        let (outputs, took) = run_batch(models, ModelKind::Camera, &inputs);
+        let batch = outputs.len();
+        for ((mut it, _, chain), out) in camera.into_iter().zip(outputs) {
+            it.inference += took;
+            match (out, chain) {
+                (Ok(h), Some((kind, then))) => {
+                    let t = Instant::now();
+                    let next = then(&h);
+                    it.between = t.elapsed();
+                    it.camera = Some(h);
+                    let want = models.io(kind).input_len();
+                    if next.len() == want {
+                        points[slot(kind)].push((it, next));
+                    } else {
+                        let e = format!("{}: chained input of {} floats, expected {want}", kind.key(), next.len());
+                        reply(it, Err(Error::Runtime(e)), 1);
+                    }
+                }
+                (out, _) => reply(it, out, batch),
+            }
+        }
+    }
+    for (kind, group) in ModelKind::ALL.into_iter().zip(points) {
+        if group.is_empty() {
+            continue;
+        }
+        let inputs: Vec<&[f32]> = group.iter().map(|g| g.1.as_slice()).collect();
+        let (outputs, took) = run_batch(models, kind, &inputs);
+        let batch = outputs.len();
+        for ((mut it, _), out) in group.into_iter().zip(outputs) {
+            it.inference += took;
+            reply(it, out, batch);
         }
     }
 }
 
-fn run_batch(models: &mut Models, kind: ModelKind, jobs: Vec<Job>) {
+fn slot(kind: ModelKind) -> usize {
+    ModelKind::ALL.iter().position(|k| *k == kind).unwrap_or(0)
+}
+
+fn reply(it: Item, out: Result<Vec<f32>>, batch: usize) {
+    let _ = it.job_reply.send(out.map(|data| JobOutput {
+        data,
+        camera: it.camera,
+        queue: it.queue,
+        inference: it.inference,
+        between: it.between,
+        batch,
+    }));
+}
+
+/// One inference call over `inputs`; each item's output, or the call's error for every item.
+fn run_batch(models: &mut Models, kind: ModelKind, inputs: &[&[f32]]) -> (Vec<Result<Vec<f32>>>, Duration) {
     let started = Instant::now();
-    let batch = jobs.len();
+    let batch = inputs.len();
     let mut input = Vec::with_capacity(batch * models.io(kind).input_len());
-    for j in &jobs {
-        input.extend_from_slice(&j.input);
+    for x in inputs {
+        input.extend_from_slice(x);
     }
     let result = models.run(kind, batch, &input);
     let inference = started.elapsed();
     metrics::histogram!("posefuse_inference_seconds", "model" => kind.key()).record(inference.as_secs_f64());
     metrics::histogram!("posefuse_batch_size", "model" => kind.key()).record(batch as f64);
     let out_len = models.io(kind).output_len();
-    for (i, j) in jobs.into_iter().enumerate() {
-        let queue = started.saturating_duration_since(j.enqueued);
-        metrics::histogram!("posefuse_queue_wait_seconds", "model" => kind.key()).record(queue.as_secs_f64());
-        let item = match &result {
-            Ok(all) => Ok(JobOutput { data: all[i * out_len..(i + 1) * out_len].to_vec(), queue, inference, batch }),
+    let outputs = (0..batch)
+        .map(|i| match &result {
+            Ok(all) => Ok(all[i * out_len..(i + 1) * out_len].to_vec()),
             Err(e) => Err(Error::Runtime(e.to_string())),
-        };
-        let _ = j.reply.send(item);
-    }
+        })
+        .collect();
+    (outputs, inference)
 }

@@ -5,6 +5,6 @@ pub mod bundle;
 pub mod env;
 mod models;
 
-pub use batcher::{JobOutput, PauseGuard, Runtime, RuntimeConfig};
+pub use batcher::{ChainStep, JobOutput, PauseGuard, Runtime, RuntimeConfig};
 pub use bundle::{Bundle, Manifest, ModelIo, ModelKind, ModelSpec};
 pub use models::Models;

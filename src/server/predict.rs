@@ -18,7 +18,7 @@ use crate::pipeline::{
     crop_rgb, decode_heatmaps, fused_points, keypoints_to_pixels, keypoints_to_vehicle, lidar_points, lift, normalize,
     prepare_person, smoothed_features, PipelineConfig, PointInput,
 };
-use crate::runtime::{Bundle, JobOutput, ModelKind, Runtime};
+use crate::runtime::{Bundle, ChainStep, JobOutput, ModelKind, Runtime};
 
 /// Runs frames through the pipeline and the runtime.
 #[derive(Clone)]
@@ -66,6 +66,7 @@ impl PersonTimes {
     fn add(&mut self, out: &JobOutput) {
         self.queue += out.queue;
         self.inference += out.inference;
+        self.preprocess += out.between;
     }
 }
 
@@ -153,46 +154,45 @@ impl Predictor {
         let cfg = self.runtime.bundle().config();
         let (s, hm) = (cfg.image_size, cfg.heatmap_size as usize);
         let mut times = PersonTimes::default();
-        let heatmaps = match p.image_input {
-            Some(x) => {
-                let out = self.runtime.infer(ModelKind::Camera, x).await?;
-                times.add(&out);
-                Some(out.data)
-            }
-            None => None,
-        };
-        let need_heatmaps = || Error::Runtime(format!("{}: camera heatmaps missing", p.id));
-        let (local, scores): (Vec<[f32; 3]>, Option<Vec<f32>>) = match p.mode {
+        let PersonPlan { id, mode, reason, box_frame, box_2d, num_points, input, image_input } = p;
+        let need_crop = || Error::Runtime(format!("{id}: camera input missing"));
+        let (local, scores): (Vec<[f32; 3]>, Option<Vec<f32>>) = match mode {
             Mode::Fusion => {
-                let h = heatmaps.as_deref().ok_or_else(need_heatmaps)?;
+                let x = image_input.ok_or_else(need_crop)?;
+                let chain_cfg = cfg.clone();
+                let PointInput { xyz, uv, .. } = input;
+                // runs on the inference worker, between the two networks
+                let then: ChainStep =
+                    Box::new(move |h: &[f32]| fused_points(&xyz, &smoothed_features(h, K, hm, hm, &uv, &chain_cfg), K));
+                let out = self.runtime.infer_chain(x, ModelKind::PointFusion, then).await?;
+                times.add(&out);
+                let h = out.camera.as_deref().ok_or_else(|| Error::Runtime(format!("{id}: heatmaps missing")))?;
                 let t0 = Instant::now();
-                let features = smoothed_features(h, K, hm, hm, &p.input.uv, cfg);
-                let fused = fused_points(&p.input.xyz, &features, K);
                 let scores = decode_heatmaps(h, K, hm, hm, s).into_iter().map(|(_, v)| v).collect();
                 times.preprocess += t0.elapsed();
-                let out = self.runtime.infer(ModelKind::PointFusion, fused).await?;
-                times.add(&out);
                 (triples(&out.data), Some(scores))
             }
             Mode::Lidar => {
-                let out = self.runtime.infer(ModelKind::PointLidar, lidar_points(&p.input.xyz)).await?;
+                let out = self.runtime.infer(ModelKind::PointLidar, lidar_points(&input.xyz)).await?;
                 times.add(&out);
                 (triples(&out.data), None)
             }
             Mode::Camera => {
-                let h = heatmaps.as_deref().ok_or_else(need_heatmaps)?;
+                let x = image_input.ok_or_else(need_crop)?;
+                let out = self.runtime.infer(ModelKind::Camera, x).await?;
+                times.add(&out);
                 let t0 = Instant::now();
-                let decoded = decode_heatmaps(h, K, hm, hm, s);
+                let decoded = decode_heatmaps(&out.data, K, hm, hm, s);
                 let kp_uv: Vec<[f32; 2]> = decoded.iter().map(|d| d.0).collect();
-                let lifted = lift(&kp_uv, &p.input.uv, &p.input.xyz, s, cfg.lift_temperature);
+                let lifted = lift(&kp_uv, &input.uv, &input.xyz, s, cfg.lift_temperature);
                 times.preprocess += t0.elapsed();
                 (lifted, Some(decoded.into_iter().map(|d| d.1).collect()))
             }
         };
         if let Some(k) = local.iter().position(|q| q.iter().any(|v| !v.is_finite())) {
-            return Err(Error::Runtime(format!("{}: keypoint {} is not finite", p.id, NAMES[k])));
+            return Err(Error::Runtime(format!("{id}: keypoint {} is not finite", NAMES[k])));
         }
-        let vehicle = keypoints_to_vehicle(&local, &p.box_frame, cfg);
+        let vehicle = keypoints_to_vehicle(&local, &box_frame, cfg);
         let pixels = keypoints_to_pixels(&vehicle, camera);
         let keypoints = (0..K)
             .map(|k| KeypointPose {
@@ -203,14 +203,7 @@ impl Predictor {
                 score: scores.as_ref().map(|s| s[k]),
             })
             .collect();
-        let pose = PersonPose {
-            id: p.id,
-            mode: p.mode,
-            mode_reason: p.reason,
-            num_points: p.num_points,
-            box_2d: p.box_2d,
-            keypoints,
-        };
+        let pose = PersonPose { id, mode, mode_reason: reason, num_points, box_2d, keypoints };
         Ok((pose, times))
     }
 }
