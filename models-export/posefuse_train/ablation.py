@@ -39,6 +39,7 @@ ROWS = {
     "fusion_reg": (True, False, False),
     "fusion_reg_seg": (True, True, False),
     "fusion_reg_seg_depth": (True, True, True),
+    "lidar_reg_seg_depth": (False, True, True),
 }
 
 
@@ -55,6 +56,14 @@ def label_quality(lab: dict, d: dict) -> dict:
     ok = lab["visible"] & (d["kp3d_visible"] > 0)
     err = np.linalg.norm(lab["kp3d"] - d["kp3d"], axis=2)[ok]
     return {"mean_error_m": float(err.mean()) if err.size else None, "labels": int(ok.sum())}
+
+
+def degrade_lidar(train: dict, test: dict, sigma: float, seed: int = 0) -> None:
+    """A harsher LiDAR for diagnosis: noise on every point the trainer and the evaluation see.
+    The points' pixels stay: range noise moves a return along its ray, not across the image."""
+    rng = np.random.default_rng(seed)
+    for d, key in ((train, "points_xyz"), (test, "points_xyz"), (test, "serve_xyz")):
+        d[key] = (d[key] + rng.normal(0.0, sigma, d[key].shape)).astype(d[key].dtype)
 
 
 def main(argv=None):
@@ -101,6 +110,12 @@ def main(argv=None):
         "size 2*ceil(sigma)+1 (7 for the paper's sigma = 3)",
     )
     p.add_argument("--t-r", type=float, default=200.0, help="reliability temperature T_r (S units)")
+    p.add_argument(
+        "--lidar-noise",
+        type=float,
+        default=0.0,
+        help="diagnostic: extra isotropic Gaussian noise (metres) on every LiDAR point, train and test",
+    )
     p.add_argument("--device", default="cuda" if torch.cuda.is_available() else "cpu")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     a = p.parse_args(argv)
@@ -125,6 +140,8 @@ def main(argv=None):
     test, test_cfg, test_meta = data_mod.load(a.test, a.limit_test)
     if cfg != test_cfg:
         raise SystemExit(f"train and test preprocessing differ:\n{cfg}\n{test_cfg}")
+    if a.lidar_noise > 0:
+        degrade_lidar(train, test, a.lidar_noise)
     if a.smoothing_sigma is not None:
         # Smoothing is the model's, not the data's: it goes into the bundle's manifest.
         kernel = 2 * int(np.ceil(a.smoothing_sigma)) + 1
@@ -139,7 +156,7 @@ def main(argv=None):
     plain = labels.pseudo_labels(train, cfg, a.t_r)
     corrected = (
         labels.pseudo_labels(train, cfg, a.t_r, depth_correction=True)
-        if "fusion_reg_seg_depth" in rows
+        if any(ROWS[r][2] for r in rows)
         else None
     )
     quality = {"eq1": label_quality(plain, train)}
