@@ -128,7 +128,12 @@ def table3(rows: dict) -> str:
             + [pct(r["oks_acc_3d"]), cm(r["mpjpe_3d_m"]), pct(r["oks_acc_2d"]), pct(r["pck_3d_10cm"])]
             + [cm(r["pem_3d_m"]), *paper, str(row.get("steps", "-")), f"{row.get('train_s', 0):.0f} s"]
         )
-    return md_table(header, body)
+    table = md_table(header, body)
+    # rows added later from their own run (same data, camera checkpoint and step count) say so
+    for key, row in rows.items():
+        if row.get("separate_run"):
+            table += f"\n\nRow `{key}` was trained in a separate run: `{row['separate_run']}`."
+    return table
 
 
 def backbone_table(b: dict) -> str:
