@@ -6,19 +6,42 @@ mod server_support;
 use std::sync::Arc;
 use std::time::Duration;
 
-use posefuse::runtime::{Bundle, ModelKind, Runtime, RuntimeConfig};
+use posefuse::runtime::{Bundle, JobOutput, ModelKind, Runtime, RuntimeConfig};
 use server_support::model_dir;
 
 fn input(len: usize, seed: f32) -> Vec<f32> {
     (0..len).map(|i| ((i as f32 * 0.37 + seed).sin()) * 0.5).collect()
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn queued_jobs_form_one_batch_with_unchanged_outputs() {
+/// A warmed-up runtime on the test bundle that batches up to 8 jobs.
+async fn started_runtime() -> Arc<Runtime> {
     let bundle = Arc::new(Bundle::load(&model_dir()).unwrap());
     let cfg = RuntimeConfig { max_batch: 8, ..RuntimeConfig::default() };
     let rt = Arc::new(tokio::task::spawn_blocking(move || Runtime::start(bundle, &cfg)).await.unwrap().unwrap());
     assert!(rt.wait_ready(Duration::from_secs(60)));
+    rt
+}
+
+/// `n` jobs submitted while the workers are paused (so they queue together), then their outputs.
+async fn queued_while_paused<F, Fut>(rt: &Arc<Runtime>, n: usize, job: F) -> Vec<JobOutput>
+where
+    F: Fn(Arc<Runtime>, usize) -> Fut,
+    Fut: std::future::Future<Output = posefuse::error::Result<JobOutput>> + Send + 'static,
+{
+    let pause = rt.pause();
+    let jobs: Vec<_> = (0..n).map(|i| tokio::spawn(job(rt.clone(), i))).collect();
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    drop(pause);
+    let mut outs = Vec::new();
+    for j in jobs {
+        outs.push(j.await.unwrap().unwrap());
+    }
+    outs
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn queued_jobs_form_one_batch_with_unchanged_outputs() {
+    let rt = started_runtime().await;
     let len = rt.bundle().io(ModelKind::PointLidar).input_len();
 
     // Alone: a batch of one.
@@ -27,19 +50,10 @@ async fn queued_jobs_form_one_batch_with_unchanged_outputs() {
     assert_eq!(alone.data.len(), rt.bundle().io(ModelKind::PointLidar).output_len());
 
     // Five jobs queued while the worker is paused run together.
-    let pause = rt.pause();
-    let jobs: Vec<_> = (0..5)
-        .map(|i| {
-            let rt = rt.clone();
-            tokio::spawn(async move { rt.infer(ModelKind::PointLidar, input(len, 1.0 + i as f32)).await })
-        })
-        .collect();
-    tokio::time::sleep(Duration::from_millis(200)).await;
-    drop(pause);
-    let mut outs = Vec::new();
-    for j in jobs {
-        outs.push(j.await.unwrap().unwrap());
-    }
+    let outs = queued_while_paused(&rt, 5, |rt, i| async move {
+        rt.infer(ModelKind::PointLidar, input(len, 1.0 + i as f32)).await
+    })
+    .await;
     // The worker may have taken the first job before pausing; the rest share a batch.
     assert!(outs[1..].iter().all(|o| o.batch >= 4), "{:?}", outs.iter().map(|o| o.batch).collect::<Vec<_>>());
     let max_diff = outs[0].data.iter().zip(&alone.data).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
@@ -53,10 +67,7 @@ async fn queued_jobs_form_one_batch_with_unchanged_outputs() {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_chain_equals_its_two_jobs_and_batches_with_others() {
-    let bundle = Arc::new(Bundle::load(&model_dir()).unwrap());
-    let cfg = RuntimeConfig { max_batch: 8, ..RuntimeConfig::default() };
-    let rt = Arc::new(tokio::task::spawn_blocking(move || Runtime::start(bundle, &cfg)).await.unwrap().unwrap());
-    assert!(rt.wait_ready(Duration::from_secs(60)));
+    let rt = started_runtime().await;
     let (cam_len, pt_len) =
         (rt.bundle().io(ModelKind::Camera).input_len(), rt.bundle().io(ModelKind::PointFusion).input_len());
     // a step that depends on the heatmaps, so a wrong hand-over shows in the point output
@@ -69,21 +80,10 @@ async fn a_chain_equals_its_two_jobs_and_batches_with_others() {
     assert_eq!(chained.data, points);
 
     // Chains queued together share the camera batch and the point batch.
-    let pause = rt.pause();
-    let jobs: Vec<_> = (0..3)
-        .map(|i| {
-            let rt = rt.clone();
-            tokio::spawn(async move {
-                rt.infer_chain(input(cam_len, 3.0 + i as f32), ModelKind::PointFusion, Box::new(step)).await
-            })
-        })
-        .collect();
-    tokio::time::sleep(Duration::from_millis(200)).await;
-    drop(pause);
-    let mut outs = Vec::new();
-    for j in jobs {
-        outs.push(j.await.unwrap().unwrap());
-    }
+    let outs = queued_while_paused(&rt, 3, |rt, i| async move {
+        rt.infer_chain(input(cam_len, 3.0 + i as f32), ModelKind::PointFusion, Box::new(step)).await
+    })
+    .await;
     assert!(outs[1..].iter().all(|o| o.batch >= 2), "{:?}", outs.iter().map(|o| o.batch).collect::<Vec<_>>());
     assert!(outs.iter().all(|o| o.camera.as_ref().is_some_and(|h| h.len() == heatmaps.len())));
 
