@@ -13,6 +13,7 @@ import dataclasses
 import json
 import platform
 import shlex
+import shutil
 import sys
 import tempfile
 import time
@@ -180,6 +181,9 @@ def main(argv=None):
             **{k: tuple(v) if isinstance(v, list) else v for k, v in cam_ckpt["train_config"].items()}
         )
         log(f"camera: reusing {a.camera_checkpoint}")
+        # the run directory stays self-contained for by_range / heading_error
+        if Path(a.camera_checkpoint).resolve() != (out / "camera.pt").resolve():
+            shutil.copyfile(a.camera_checkpoint, out / "camera.pt")
     else:
         net_cfg = CameraNetConfig(backbone=a.backbone, deconv_channels=a.deconv_channels)
         camera = train_camera(train, cfg, net_cfg, cam_cfg, a.device, log=log)

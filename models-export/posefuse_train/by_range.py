@@ -25,20 +25,19 @@ from .train_point import predict_points
 BANDS = ((3.0, 10.0), (10.0, 20.0), (20.0, 40.0), (40.0, 60.0))
 
 
-def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m posefuse_train.by_range", description=__doc__.split("\n")[0])
-    p.add_argument("--run", required=True, help="an ablation --out directory (camera.pt, <row>.pt)")
-    p.add_argument("--test", required=True)
-    p.add_argument("--rows", default="camera,lidar_reg_seg,fusion_reg_seg")
-    p.add_argument("--json", help="also write the table here")
-    a = p.parse_args(argv)
-    run = Path(a.run)
-    test, cfg, _ = data_mod.load(a.test)
+def run_heatmaps(run: Path, test: dict, cfg: PipelineConfig) -> np.ndarray:
     camera = camera_from_checkpoint(load_checkpoint(run / "camera.pt")).eval()
-    raw = predict_heatmaps(camera, test["image"], cfg)
+    return predict_heatmaps(camera, test["image"], cfg)
+
+
+def run_predictions(run: Path, rows: list[str], test: dict, cfg: PipelineConfig, raw=None) -> dict:
+    """Held-out predictions (model-input coordinates, camera-only fallback for sparse persons) of
+    an ablation run's checkpoints; row "camera" is the camera-only baseline. `raw`: the run's
+    camera heatmaps of `test`, when already computed."""
+    raw = run_heatmaps(run, test, cfg) if raw is None else raw
     cam_pred = evaluate.camera_only(raw, test, cfg)
     preds = {}
-    for row in a.rows.split(","):
+    for row in rows:
         if row == "camera":
             preds[row] = cam_pred
             continue
@@ -48,6 +47,18 @@ def main(argv=None):
         sm = smoothed(raw, PipelineConfig.from_dict(ckpt["pipeline"])) if fusion else None
         pred = predict_points(net, test["serve_xyz"], test["serve_uv"], sm, cfg.image_size)
         preds[row] = evaluate.with_fallback(pred, cam_pred, test, cfg)
+    return preds
+
+
+def main(argv=None):
+    p = argparse.ArgumentParser(prog="python -m posefuse_train.by_range", description=__doc__.split("\n")[0])
+    p.add_argument("--run", required=True, help="an ablation --out directory (camera.pt, <row>.pt)")
+    p.add_argument("--test", required=True)
+    p.add_argument("--rows", default="camera,lidar_reg_seg,fusion_reg_seg")
+    p.add_argument("--json", help="also write the table here")
+    a = p.parse_args(argv)
+    test, cfg, _ = data_mod.load(a.test)
+    preds = run_predictions(Path(a.run), a.rows.split(","), test, cfg)
     table = []
     for lo, hi in BANDS:
         sel = np.flatnonzero((test["range_m"] >= lo) & (test["range_m"] < hi))

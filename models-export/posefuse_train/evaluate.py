@@ -9,6 +9,7 @@ import numpy as np
 from . import metrics
 from .config import PipelineConfig
 from .fusion import decode_heatmaps
+from .keypoints import FLIP
 from .labels import lift
 
 
@@ -35,4 +36,21 @@ def evaluate(pred_local: np.ndarray, data: dict, cfg: PipelineConfig) -> dict:
     e2 = metrics.evaluate_persons(
         px, data["kp2d_image_true"], data["kp2d_visible"] > 0, metrics.box_scale_2d(data["box2d"])
     )
-    return metrics.report(e3, e2)
+    report = metrics.report(e3, e2)
+    report["left_right_swap_rate"] = left_right_swap_rate(pred_local, data["kp3d"], data["kp3d_visible"] > 0)
+    return report
+
+
+def left_right_swap_rate(pred, gt, visible, min_visible: int = 4) -> float | None:
+    """Diagnostic (not a Waymo metric): the share of persons whose prediction is closer to the
+    truth with left and right exchanged than to the truth itself, i.e. the body's facing was read
+    the wrong way round. Persons with fewer than `min_visible` visible keypoints are skipped."""
+    pred, gt = np.asarray(pred, np.float64), np.asarray(gt, np.float64)
+    vis = np.asarray(visible, bool)
+    both = vis & vis[:, FLIP] & np.isfinite(pred).all(axis=2)
+    keep = both.sum(axis=1) >= min_visible
+    if not keep.any():
+        return None
+    direct = np.where(both, np.linalg.norm(pred - gt, axis=2), 0.0).sum(axis=1)
+    mirrored = np.where(both, np.linalg.norm(pred - gt[:, FLIP], axis=2), 0.0).sum(axis=1)
+    return float((mirrored[keep] < direct[keep]).mean())

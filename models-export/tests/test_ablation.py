@@ -84,3 +84,33 @@ def test_ablation_runs_end_to_end_and_writes_report_and_bundle(synthetic_sets, t
     )
     md = (tmp_path / "R.md").read_text()
     assert "## By range" in md and "## Our analysis" in md and "Table 3" in md
+
+    # a paper-recipe row reusing the camera net: its run directory is self-contained, and the
+    # heading-error diagnostic and the report take it
+    out2 = tmp_path / "run180"
+    main(
+        ["--train", str(train), "--test", str(test), "--out", str(out2), "--results", ""]
+        + ["--camera-checkpoint", str(out / "camera.pt"), "--rows", "lidar_reg", "--rotate-deg", "180"]
+        + ["--budget-min", "0", "--point-epochs", "1"]
+    )
+    assert (out2 / "camera.pt").read_bytes() == (out / "camera.pt").read_bytes()
+    recipe = json.loads((out2 / "results.json").read_text())
+    assert recipe["rows"]["lidar_reg"]["config"]["rotate_deg"] == 180.0
+    from posefuse_train.heading_error import main as heading_main
+
+    heading_main(
+        ["--test", str(test), "--errors", "0,180", "--json", str(tmp_path / "heading.json")]
+        + ["--models", f"{out}:fusion_reg_seg,{out2}:lidar_reg"]
+    )
+    heading = json.loads((tmp_path / "heading.json").read_text())
+    assert [c["error_deg"] for c in heading] == [0.0, 180.0]
+    assert (
+        heading[0][f"{out}:fusion_reg_seg"]["oks_acc_3d"]
+        == summary["rows"]["fusion_reg_seg"]["metrics"]["oks_acc_3d"]
+    )
+    report_main(
+        [str(out / "results.json"), "--paper-recipe", str(out2 / "results.json")]
+        + ["--heading-error", str(tmp_path / "heading.json"), "--out", str(tmp_path / "R2.md")]
+    )
+    md = (tmp_path / "R2.md").read_text()
+    assert "## Table 3 with the paper's rotation augmentation" in md and "## Wrong box headings" in md

@@ -1,8 +1,8 @@
 import numpy as np
 
 from posefuse_train.data import load
-from posefuse_train.evaluate import camera_only, evaluate, with_fallback
-from posefuse_train.keypoints import K
+from posefuse_train.evaluate import camera_only, evaluate, left_right_swap_rate, with_fallback
+from posefuse_train.keypoints import FLIP, K
 
 
 def test_camera_only_decodes_and_lifts_over_the_serve_points(synthetic_sets):
@@ -34,3 +34,16 @@ def test_fallback_uses_camera_answers_for_sparse_persons(synthetic_sets):
     assert (out[1] == 1).all() and (out[0] == 0).all() and (out[2] == 0).all()
     r = evaluate(out, d, cfg)
     assert r["count_3d"] == 3 and 0 <= r["oks_acc_3d"] <= 1
+
+
+def test_left_right_swap_rate_counts_persons_read_the_wrong_way_round():
+    rng = np.random.default_rng(0)
+    gt = rng.normal(0.0, 0.3, (4, K, 3))
+    vis = np.ones((4, K), bool)
+    pred = gt + 0.01
+    pred[1] = gt[1][FLIP]  # facing read backwards: left and right exchanged
+    pred[2] = gt[2][FLIP] + 0.02
+    vis[3, 1:] = False  # only the nose: too few keypoints to tell, skipped
+    assert left_right_swap_rate(pred, gt, vis) == 2 / 3
+    assert left_right_swap_rate(gt, gt, vis) == 0.0
+    assert left_right_swap_rate(pred, gt, np.zeros((4, K), bool)) is None

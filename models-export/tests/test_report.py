@@ -1,7 +1,7 @@
 import numpy as np
 
 from posefuse_train.ablation import degrade_lidar
-from posefuse_train.report import table3
+from posefuse_train.report import heading_error_table, paper_recipe_section, table3
 
 METRICS = {"oks_acc_3d": 0.5, "mpjpe_3d_m": 0.1, "oks_acc_2d": 0.9, "pck_3d_10cm": 0.5, "pem_3d_m": 0.1}
 
@@ -26,3 +26,36 @@ def test_degrade_lidar_adds_noise_of_the_given_scale_to_every_point_array():
         assert arr.dtype == np.float32
         assert abs(float((arr - base).std()) - 0.05) < 0.005
         assert abs(float((arr - base).mean())) < 0.005
+
+
+def test_paper_recipe_rows_merge_runs_in_the_papers_order_and_cite_each_command():
+    cfg = {"seg": False, "fusion": False, "rotate_deg": 180.0}
+    run_a = {
+        "command": "python -m a",
+        "wall_s": 600.0,
+        "rows": {
+            "camera": {},
+            "fusion_reg_seg": {"config": {**cfg, "seg": True, "fusion": True}, "metrics": METRICS},
+        },
+    }
+    run_b = {
+        "command": "python -m b",
+        "wall_s": 60.0,
+        "rows": {"lidar_reg": {"config": cfg, "metrics": METRICS}},
+    }
+    md = "\n".join(paper_recipe_section([run_a, run_b]))
+    assert "±180°" in md
+    # the paper's order (lidar_reg before fusion_reg_seg) and the paper's numbers beside ours
+    assert md.index("59.10%") < md.index("63.14%")
+    assert "- `python -m a` (10.0 min)" in md and "- `python -m b` (1.0 min)" in md
+
+
+def test_heading_error_table_has_a_row_per_error_and_a_column_per_model():
+    cell = {"oks_acc_3d": 0.5, "mpjpe_3d_m": 0.1, "left_right_swap_rate": 0.25}
+    md = heading_error_table(
+        [{"error_deg": 0.0, "r:a": cell, "r:b": cell}, {"error_deg": 180.0, "r:a": cell, "r:b": cell}]
+    )
+    lines = md.splitlines()
+    assert len(lines) == 4 and lines[3].startswith("| 180°")
+    assert "`r:a` OKS@3D" in lines[0] and "`r:b` OKS@3D" in lines[0]
+    assert lines[2].count("50.00% / 10.00 cm / 25.00%") == 2
