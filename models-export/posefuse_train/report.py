@@ -179,15 +179,9 @@ def paper_recipe_section(runs: list[dict]) -> list[str]:
         "",
         f"The same rows trained with random rotation ±{'/'.join(f'{r:g}' for r in rotations)}° about z "
         "(the paper: [0, 2π)), so the networks must read the body's facing from the points (and the "
-        "camera) instead of from the box heading; same data, camera net and step count as above. "
-        "L-R swaps: the share of persons predicted closer to the truth with left and right exchanged.",
+        "camera) instead of from the box heading; same data, camera net and step count as above.",
         "",
         table3(rows),
-        "",
-        md_table(
-            ["row", "L-R swaps"],
-            [[f"`{k}`", pct(v["metrics"].get("left_right_swap_rate"))] for k, v in rows.items()],
-        ),
         "",
         "Commands:",
         "",
