@@ -90,6 +90,9 @@ def main(argv=None):
     p.add_argument("--point-optimizer", default=TrainPointConfig.optimizer, choices=["sgd", "adam"])
     p.add_argument("--rotate-deg", type=float, default=TrainPointConfig.rotate_deg)
     p.add_argument(
+        "--seed", type=int, default=TrainPointConfig.seed, help="point nets' initialisation and sampling"
+    )
+    p.add_argument(
         "--seg-weight",
         type=float,
         default=TrainPointConfig.seg_weight,
@@ -243,6 +246,7 @@ def main(argv=None):
             lr=a.point_lr,
             optimizer=a.point_optimizer,
             rotate_deg=a.rotate_deg,
+            seed=a.seed,
             seg_weight=a.seg_weight,
             time_budget_s=row_budget * (1.0 if first else 1.3),
         )

@@ -59,3 +59,15 @@ def test_heading_error_table_has_a_row_per_error_and_a_column_per_model():
     assert len(lines) == 4 and lines[3].startswith("| 180°")
     assert "`r:a` OKS@3D" in lines[0] and "`r:b` OKS@3D" in lines[0]
     assert lines[2].count("50.00% / 10.00 cm / 25.00%") == 2
+
+
+def test_paper_recipe_rows_of_another_seed_get_their_own_table():
+    cfg = {"seg": False, "fusion": False, "rotate_deg": 180.0}
+    run = lambda seed, cmd: {  # noqa: E731
+        "command": cmd,
+        "wall_s": 60.0,
+        "rows": {"lidar_reg": {"config": {**cfg, "seed": seed}, "metrics": METRICS}},
+    }
+    md = "\n".join(paper_recipe_section([run(0, "a"), run(1, "b")]))
+    assert md.index("Point-net seed 0:") < md.index("Point-net seed 1:")
+    assert md.count("| ✓ |  |  | eq. 1 |") == 2
