@@ -18,7 +18,7 @@ import numpy as np
 from . import data as data_mod
 from . import evaluate
 from .by_range import run_heatmaps, run_predictions
-from .report import cm, pct
+from .report import heading_error_table
 
 
 def with_heading_error(test: dict, error_rad: float) -> dict:
@@ -28,8 +28,9 @@ def with_heading_error(test: dict, error_rad: float) -> dict:
     c, s = np.cos(-error_rad), np.sin(-error_rad)
     rot = np.array([[c, -s, 0.0], [s, c, 0.0], [0.0, 0.0, 1.0]], np.float32)
     out = dict(test)
-    for key in ("serve_xyz", "kp3d"):
-        out[key] = (test[key] @ rot.T).astype(test[key].dtype)
+    for key in ("points_xyz", "serve_xyz", "kp3d", "sensor_xyz"):
+        if key in test:
+            out[key] = (test[key] @ rot.T).astype(test[key].dtype)
     out["box3d"] = test["box3d"].copy()
     out["box3d"][:, 6] += error_rad
     return out
@@ -59,15 +60,7 @@ def main(argv=None):
                 k: m[k] for k in ("oks_acc_3d", "mpjpe_3d_m", "oks_acc_2d", "left_right_swap_rate")
             }
         table.append(cells)
-    names = [f"{run}:{row}" for run, row in models]
-    print("| heading error | " + " | ".join(f"`{n}` OKS@3D / MPJPE / L-R swaps" for n in names) + " |")
-    print("|---|" + "---|" * len(names))
-    for c in table:
-        vals = [
-            f"{pct(c[n]['oks_acc_3d'])} / {cm(c[n]['mpjpe_3d_m'])} / {pct(c[n]['left_right_swap_rate'])}"
-            for n in names
-        ]
-        print(f"| {c['error_deg']:g}° | " + " | ".join(vals) + " |")
+    print(heading_error_table(table))
     if a.json:
         Path(a.json).write_text(json.dumps(table, indent=2))
 
