@@ -11,6 +11,7 @@ use ndarray_npy::NpzReader;
 use posefuse::frame::{Box3d, CameraCalibration, Frame};
 use posefuse::geometry::{BoxFrame, Camera};
 use posefuse::pipeline::{crop_rgb, from_local, prepare_person, CropTransform, PipelineConfig};
+use posefuse::sim::street::Profile;
 use posefuse::sim::{simulate_command, SimulateArgs};
 
 const S: u32 = 64;
@@ -25,6 +26,7 @@ fn args(out: &Path) -> SimulateArgs {
         preview: true,
         requests: Some(1),
         points_cap: 300,
+        profile: Profile::Clean,
         jobs: Some(2),
     }
 }
@@ -69,6 +71,22 @@ fn two_runs_are_byte_identical() {
 }
 
 /// The keys of the shard table in docs/DATA.md with their dtypes and shapes.
+#[test]
+fn the_street_profile_is_recorded_reproducible_and_different() {
+    let street = |dir: &Path| SimulateArgs { profile: Profile::Street, ..args(dir) };
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    simulate_command(street(a.path())).unwrap();
+    simulate_command(street(b.path())).unwrap();
+    let (fa, fb) = (files(a.path()), files(b.path()));
+    assert_eq!(fa, fb, "street runs differ");
+    let doc: serde_json::Value = serde_json::from_slice(&fa["dataset.json"]).unwrap();
+    assert_eq!(doc["profile"], "street");
+    let clean = files(run_once());
+    let clean_doc: serde_json::Value = serde_json::from_slice(&clean["dataset.json"]).unwrap();
+    assert_eq!(clean_doc["profile"], "clean");
+    assert_ne!(fa["shards/shard-00000.npz"], clean["shards/shard-00000.npz"]);
+}
+
 fn documented_keys() -> Vec<(String, String, String)> {
     let doc = std::fs::read_to_string(Path::new(env!("CARGO_MANIFEST_DIR")).join("docs/DATA.md")).unwrap();
     let table = doc.split("## Shard keys").nth(1).unwrap();

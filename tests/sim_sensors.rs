@@ -14,6 +14,7 @@ use posefuse::sim::raycast::Shape;
 use posefuse::sim::render::{render, RayGrid, Region, Rendered};
 use posefuse::sim::scene::{Ground, ObjectKind, Scene, GROUND};
 use posefuse::sim::scene::{Material, Pattern};
+use posefuse::sim::street::{dress, Profile};
 use posefuse::sim::world::{nominal_camera, put_person, sample_world, Look, World, LIDAR_ORIGIN};
 
 /// The region of the image around a person's 2D box (clipped), coarse enough to stay small.
@@ -46,8 +47,8 @@ fn lidar_returns_land_on_the_rendered_surface_they_hit() {
     let (mut eligible, mut agree, mut person_hits) = (0usize, 0usize, 0usize);
     for seed in 0..3u64 {
         let mut rng = frame_rng(1000 + seed, 0);
-        let world = sample_world(&mut rng, 2).unwrap();
-        let returns = scan(&world, &mut rng);
+        let world = sample_world(&mut rng, 2, Profile::Clean).unwrap();
+        let returns = scan(&world, Profile::Clean, &mut rng);
         let cam = &world.camera;
         for p in &world.persons {
             let Some(b) = box_2d(&world, p) else { continue };
@@ -89,7 +90,7 @@ fn visibility_flags_agree_with_the_rendered_image() {
     let (mut checked_visible, mut visible_ok, mut hidden_by_other) = (0usize, 0usize, 0usize);
     for seed in 0..4u64 {
         let mut rng = frame_rng(2000 + seed, 0);
-        let world = sample_world(&mut rng, 3).unwrap();
+        let world = sample_world(&mut rng, 3, Profile::Clean).unwrap();
         for p in &world.persons {
             let Some(b) = box_2d(&world, p) else { continue };
             let rendered = render(&world, region_around(&world, &b));
@@ -186,7 +187,7 @@ fn a_wall_in_front_hides_the_legs_only() {
     assert!(!v[9] && !v[10] && !v[11] && !v[12], "knees and ankles are hidden: {v:?}");
     // The wall's returns are in front of the person's in the LiDAR too.
     w.persons.push(p);
-    let pts = scan(&w, &mut rng);
+    let pts = scan(&w, Profile::Clean, &mut rng);
     assert!(pts.iter().any(|r| r.object != GROUND && r.object != w.persons[0].object));
     assert!(pts.iter().any(|r| r.object == w.persons[0].object));
 }
@@ -194,7 +195,7 @@ fn a_wall_in_front_hides_the_legs_only() {
 #[test]
 fn interpolated_rays_match_the_camera_model() {
     let mut rng = frame_rng(5, 5);
-    let world = sample_world(&mut rng, 1).unwrap();
+    let world = sample_world(&mut rng, 1, Profile::Clean).unwrap();
     let cam: &Camera = &world.camera;
     let region = Region { x0: 37, y0: 11, w: 700, h: 500, step: 2 };
     let grid = RayGrid::new(cam, &region);
@@ -215,4 +216,58 @@ fn beams_span_the_waymo_field_of_view_densest_near_the_horizon() {
     let near_horizon = gaps[15..22].iter().sum::<f64>() / 7.0;
     let bottom = gaps[56..].iter().sum::<f64>() / 7.0;
     assert!(bottom > 2.0 * near_horizon, "{near_horizon} vs {bottom}");
+}
+
+#[test]
+fn street_clothes_and_items_never_move_a_keypoint() {
+    let (mut holding, mut sleeved) = (0usize, 0usize);
+    let n = 200;
+    for seed in 0..n {
+        let mut rng = frame_rng(seed, 1);
+        let bare = pose_person(&mut rng, Anthro::new(1.7, 1.0, |_| 1.0), Activity::Walking);
+        let mut dressed = bare.clone();
+        dress(&mut rng, &mut dressed);
+        assert_eq!(bare.skeleton.keypoints, dressed.skeleton.keypoints);
+        let wrists = [5, 6].map(|k| bare.skeleton.keypoints[k]);
+        let items: Vec<_> = dressed.parts[bare.parts.len()..].iter().filter(|p| p.1 == Part::Accessory).collect();
+        // Something within reach of a wrist (a bag's strap ends at the shoulder, so the centre counts).
+        if items.iter().any(|(s, _, _)| wrists.iter().any(|w| norm(sub(s.bounding_sphere().0, *w)) < 0.4)) {
+            holding += 1;
+        }
+        let forearm_past_wrist = dressed.parts.iter().any(|(s, part, _)| match (s, part) {
+            (Shape::Capsule { b, .. }, Part::Forearm(side)) => norm(sub(*b, wrists[*side])) > 0.01,
+            _ => false,
+        });
+        sleeved += usize::from(forearm_past_wrist);
+    }
+    // Half of the walkers hold something and 55 % wear loose sleeves (binomial, n = 200).
+    assert!((70..=130).contains(&holding), "{holding}/{n} hold something");
+    assert!((85..=135).contains(&sleeved), "{sleeved}/{n} have sleeves over the wrist");
+}
+
+#[test]
+fn street_lidar_mixes_ranges_at_silhouette_edges_only() {
+    // A person 12 m ahead in front of a wall at 15 m: between the two there is nothing to hit.
+    let gap_returns = |profile: Profile| {
+        let mut rng = frame_rng(8, 8);
+        let mut w = empty_world();
+        let p = put_person(
+            &mut rng,
+            &mut w.scene,
+            standing(3),
+            [12.0, 0.0, 0.0],
+            0.0,
+            ObjectKind::Person { label: Some(0) },
+        );
+        let wall = w.scene.add_object(ObjectKind::Clutter);
+        let m = w.scene.add_material(Material { base: [0.5; 3], alt: [0.5; 3], pattern: Pattern::Plain });
+        w.scene.add_prim(Shape::cuboid([15.2, 0.0, 1.5], [0.4, 8.0, 3.0], 0.0), wall, Part::Thing, m);
+        w.persons.push(p);
+        let pts = scan(&w, profile, &mut rng);
+        assert!(pts.len() > 200, "{}", pts.len());
+        pts.iter().filter(|r| r.xyz[2] > 0.2 && r.xyz[0] > 12.7 && r.xyz[0] < 14.8).count()
+    };
+    assert_eq!(gap_returns(Profile::Clean), 0);
+    let mixed = gap_returns(Profile::Street);
+    assert!(mixed >= 5, "only {mixed} mixed returns between the person and the wall");
 }

@@ -21,6 +21,7 @@ use super::labels::{label_person, PersonLabels};
 use super::lidar::{scan, Return};
 use super::math::{hash, V3};
 use super::render::{render, Region};
+use super::street::Profile;
 use super::world::{lidar_range, sample_world, World, LIDAR_ORIGIN};
 use crate::error::{Error, Result};
 use crate::frame::{Frame, GroundTruth, Keypoints2d, Keypoints3d, Person, Points, RequestedMode};
@@ -197,11 +198,12 @@ pub fn simulate_frame(
     cfg: &PipelineConfig,
     points_cap: usize,
     near_px: f64,
+    profile: Profile,
 ) -> Result<FrameResult> {
     let mut rng = frame_rng(seed, index);
     let n = persons_in_frame(&mut rng);
-    let world = sample_world(&mut rng, n)?;
-    let returns: Vec<Return> = scan(&world, &mut rng);
+    let world = sample_world(&mut rng, n, profile)?;
+    let returns: Vec<Return> = scan(&world, profile, &mut rng);
     let points: Vec<[f32; 3]> = returns.iter().map(|r| r.xyz).collect();
     let cam = &world.camera;
     let calib = cam.to_calibration();

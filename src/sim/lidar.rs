@@ -7,6 +7,7 @@ use rand_distr::{Distribution, Normal};
 
 use super::math::{dot, madd, norm, sub, V3};
 use super::scene::Scene;
+use super::street::Profile;
 use super::world::World;
 
 pub const BEAMS: usize = 64;
@@ -15,6 +16,11 @@ pub const MAX_RANGE: f64 = 75.0;
 pub const RANGE_NOISE_M: f64 = 0.02;
 const TOP_DEG: f64 = 2.4;
 const BOTTOM_DEG: f64 = -17.6;
+/// Street profile: a return is mixed (range between two surfaces) when a ray this far aside
+/// (radians, half a column) ends more than `MIXED_GAP_M` away: the beam's footprint straddles an
+/// edge.
+const MIXED_OFFSET_RAD: f64 = std::f64::consts::PI / COLUMNS as f64;
+const MIXED_GAP_M: f64 = 0.3;
 /// Lateral margin (m) of each window beyond the person's footprint.
 pub const WINDOW_MARGIN_M: f64 = 1.5;
 
@@ -103,7 +109,7 @@ fn overlaps_window(scene: &Scene, i: usize, o: V3, az_lo: f64, az_hi: f64, e_lo:
 }
 
 /// Scans the windows around the world's labelled persons. Deterministic given `rng`.
-pub fn scan<R: Rng>(world: &World, rng: &mut R) -> Vec<Return> {
+pub fn scan<R: Rng>(world: &World, profile: Profile, rng: &mut R) -> Vec<Return> {
     let incl = inclinations();
     let o = world.lidar_origin;
     let scene = &world.scene;
@@ -142,7 +148,19 @@ pub fn scan<R: Rng>(world: &World, rng: &mut R) -> Vec<Return> {
                 if rng.random_bool(p_drop.min(1.0)) {
                     continue;
                 }
-                let t = hit.t + noise.map_or(0.0, |n| n.sample(rng));
+                let mut t = hit.t;
+                if profile == Profile::Street {
+                    let side = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
+                    let aside = scene.cast(o, beam_direction(inc, az + side * MIXED_OFFSET_RAD), &cands, MAX_RANGE);
+                    match aside {
+                        Some(h) if (h.t - t).abs() > MIXED_GAP_M && rng.random_bool(0.5) => {
+                            t += rng.random::<f64>() * (h.t - t);
+                        }
+                        None if rng.random_bool(0.3) => continue,
+                        _ => {}
+                    }
+                }
+                let t = t + noise.map_or(0.0, |n| n.sample(rng));
                 let x = madd(o, d, t);
                 out.push(Return {
                     xyz: [x[0] as f32, x[1] as f32, x[2] as f32],

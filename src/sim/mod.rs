@@ -11,6 +11,7 @@ pub mod raycast;
 pub mod render;
 pub mod scene;
 pub mod stats;
+pub mod street;
 pub mod world;
 
 use std::path::Path;
@@ -54,6 +55,10 @@ pub struct SimulateArgs {
     /// Most in-box points kept per sample in `points_xyz`/`points_uv` (P in docs/DATA.md).
     #[arg(long, default_value_t = 1024)]
     pub points_cap: usize,
+    /// `clean` (tight clothing, empty hands, clean returns) or `street` (loose clothing, things in
+    /// hand, mixed-pixel LiDAR returns at silhouette edges).
+    #[arg(long, value_enum, default_value_t = street::Profile::Clean)]
+    pub profile: street::Profile,
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub jobs: Option<usize>,
@@ -95,7 +100,7 @@ pub fn simulate_command(args: SimulateArgs) -> anyhow::Result<()> {
         let batch: Vec<anyhow::Result<FrameResult>> = pool.install(|| {
             (next_frame..next_frame + n_frames)
                 .into_par_iter()
-                .map(|i| Ok(simulate_frame(args.seed, i, i < requests, &cfg, args.points_cap, near)?))
+                .map(|i| Ok(simulate_frame(args.seed, i, i < requests, &cfg, args.points_cap, near, args.profile)?))
                 .collect()
         });
         next_frame += n_frames;
@@ -165,6 +170,7 @@ fn write_dataset_json(
 ) -> anyhow::Result<()> {
     let doc = serde_json::json!({
         "version": SIM_VERSION,
+        "profile": args.profile,
         "seed": args.seed,
         "count": args.count,
         "image_size": cfg.image_size,

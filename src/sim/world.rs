@@ -11,6 +11,7 @@ use super::math::{add, dot, norm, rot_z, sub, V3};
 use super::poses::{sample_person, Activity, PersonModel, Slot};
 use super::raycast::Shape;
 use super::scene::{Ground, Material, ObjectKind, Pattern, Scene};
+use super::street::{dress, Profile};
 use crate::error::Result;
 use crate::frame::{Box3d, CameraCalibration};
 use crate::geometry::Camera;
@@ -406,9 +407,13 @@ fn place_person<R: Rng>(
     camera: &Camera,
     kind: ObjectKind,
     at: Option<(f64, f64)>,
+    profile: Profile,
 ) -> Option<PlacedPerson> {
     let anthro = Anthro::sample(rng);
-    let model = sample_person(rng, anthro);
+    let mut model = sample_person(rng, anthro);
+    if profile == Profile::Street {
+        dress(rng, &mut model);
+    }
     let fr = footprint_radius(model.activity);
     let cam = camera.position();
     let cam_yaw = {
@@ -468,7 +473,7 @@ pub fn put_person<R: Rng>(
 }
 
 /// Samples a frame with `n_labelled` labelled pedestrians (fewer only if placement fails).
-pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize) -> Result<World> {
+pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize, profile: Profile) -> Result<World> {
     let camera = sample_camera(rng)?;
     let road_half = rng.random_range(4.5..9.0);
     let ground = Ground {
@@ -488,7 +493,8 @@ pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize) -> Result<World> {
     let mut feet = Footprints { taken: Vec::new(), limit_y: road_half + 4.5 };
     let mut persons = Vec::new();
     for i in 0..n_labelled {
-        if let Some(p) = place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: Some(i) }, None)
+        if let Some(p) =
+            place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: Some(i) }, None, profile)
         {
             persons.push(p);
         }
@@ -534,10 +540,16 @@ pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize) -> Result<World> {
                         false
                     }
                 }
-                6..=8 => {
-                    place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: None }, Some((x, y)))
-                        .is_some()
-                }
+                6..=8 => place_person(
+                    rng,
+                    &mut scene,
+                    &mut feet,
+                    &camera,
+                    ObjectKind::Person { label: None },
+                    Some((x, y)),
+                    profile,
+                )
+                .is_some(),
                 _ => {
                     if feet.free(x, y, 0.9) {
                         feet.take(x, y, 0.9);
@@ -586,7 +598,7 @@ pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize) -> Result<World> {
     }
     for _ in 0..rng.random_range(0..4) {
         let (x, y) = (rng.random_range(4.0..60.0), rng.random_range(-14.0..14.0));
-        place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: None }, Some((x, y)));
+        place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: None }, Some((x, y)), profile);
     }
     add_buildings(rng, &mut scene, road_half);
     let look = Look {
