@@ -199,6 +199,36 @@ def paper_recipe_section(runs: list[dict]) -> list[str]:
     return lines
 
 
+def street_section(runs: list[dict]) -> list[str]:
+    """Rows trained and evaluated on `posefuse simulate --profile street` data (loose clothing,
+    things in hand, mixed-pixel returns): the per-keypoint table needs the run's own camera row."""
+    rows: dict = {}
+    for s in runs:
+        rows |= s["rows"]
+    s0 = runs[0]
+    rot = sorted({v["config"]["rotate_deg"] for k, v in rows.items() if k != "camera"})
+    lq = s0["label_quality"]
+    lines = [
+        "## The street profile",
+        "",
+        f"Train `{s0['train']['path']}` ({s0['train']['count']}), held-out `{s0['test']['path']}` "
+        f"({s0['test']['count']}), both `posefuse simulate --profile street` (docs/DATA.md), with "
+        f"the camera net trained on them; rotation ±{'/'.join(f'{r:g}' for r in rot)}° about z. "
+        "Pseudo labels: "
+        + ", ".join(f"{k} {cm(v['mean_error_m'])}" for k, v in lq.items())
+        + " from the 3D truth.",
+        "",
+        table2(rows),
+        "",
+        table3(rows),
+        "",
+        "Commands:",
+        "",
+        *[f"- `{s['command']}` ({s['wall_s'] / 60:.1f} min)" for s in runs],
+    ]
+    return lines
+
+
 def heading_error_table(table: list[dict]) -> str:
     names = [k for k in table[0] if k != "error_deg"]
     header = ["heading error", *[f"`{n}` OKS@3D / MPJPE / L-R swaps" for n in names]]
@@ -220,6 +250,7 @@ def results_markdown(
     notes: str | None = None,
     paper_recipe: list[dict] | None = None,
     heading_error: list[dict] | None = None,
+    street: list[dict] | None = None,
 ) -> str:
     rows, pre, lq = s["rows"], s["preprocessing"], s["label_quality"]
     cam = rows["camera"]
@@ -289,6 +320,8 @@ def results_markdown(
     ]
     if paper_recipe:
         lines += ["", *paper_recipe_section(paper_recipe)]
+    if street:
+        lines += ["", *street_section(street)]
     if heading_error:
         lines += [
             "",
@@ -355,6 +388,7 @@ def main(argv=None):
         "--paper-recipe", nargs="*", default=[], help="results.json of runs with the paper's [0, 2π) rotation"
     )
     p.add_argument("--heading-error", help="JSON written by posefuse_train.heading_error --json")
+    p.add_argument("--street", nargs="*", default=[], help="results.json of runs on --profile street data")
     p.add_argument("--out", default="docs/RESULTS.md")
     a = p.parse_args(argv)
     summary = json.loads(Path(a.results).read_text())
@@ -362,7 +396,15 @@ def main(argv=None):
     notes = Path(a.notes).read_text() if a.notes else None
     recipe = [load(r) for r in a.paper_recipe]
     Path(a.out).write_text(
-        results_markdown(summary, load(a.backbones), load(a.by_range), notes, recipe, load(a.heading_error))
+        results_markdown(
+            summary,
+            load(a.backbones),
+            load(a.by_range),
+            notes,
+            recipe,
+            load(a.heading_error),
+            [load(r) for r in a.street],
+        )
     )
     print(f"wrote {a.out}")
 

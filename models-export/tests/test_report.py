@@ -1,7 +1,7 @@
 import numpy as np
 
 from posefuse_train.ablation import degrade_lidar
-from posefuse_train.report import heading_error_table, paper_recipe_section, table3
+from posefuse_train.report import heading_error_table, paper_recipe_section, street_section, table3
 
 METRICS = {"oks_acc_3d": 0.5, "mpjpe_3d_m": 0.1, "oks_acc_2d": 0.9, "pck_3d_10cm": 0.5, "pem_3d_m": 0.1}
 
@@ -71,3 +71,28 @@ def test_paper_recipe_rows_of_another_seed_get_their_own_table():
     md = "\n".join(paper_recipe_section([run(0, "a"), run(1, "b")]))
     assert md.index("Point-net seed 0:") < md.index("Point-net seed 1:")
     assert md.count("| ✓ |  |  | eq. 1 |") == 2
+
+
+def test_street_section_has_per_keypoint_and_ablation_tables_from_its_own_runs():
+    per_kp = [{"name": f"k{i}", "oks": 0.5} for i in range(13)]
+    metrics = METRICS | {"per_keypoint_oks_3d": per_kp, "per_keypoint_oks_2d": per_kp}
+    cfg = {"seg": True, "fusion": False, "rotate_deg": 180.0}
+    run = {
+        "command": "python -m street",
+        "wall_s": 120.0,
+        "train": {"path": "data/street_train", "count": 20000},
+        "test": {"path": "data/street_test", "count": 2000},
+        "label_quality": {"eq1": {"mean_error_m": 0.0778, "labels": 10}},
+        "rows": {
+            "camera": {"metrics": metrics},
+            "lidar_reg_seg": {"config": cfg, "metrics": metrics},
+            "fusion_reg_seg": {"config": {**cfg, "fusion": True}, "metrics": metrics},
+        },
+    }
+    md = "\n".join(street_section([run]))
+    assert "## The street profile" in md and "±180°" in md and "eq1 7.78 cm" in md
+    wrist = next(line for line in md.splitlines() if line.startswith("| wrist"))
+    # camera, LiDAR-only and multi-modal columns, each beside the paper's wrist number
+    assert "45.99%" in wrist and "30.37%" in wrist and "46.97%" in wrist
+    assert md.count("| ✓ | ✓ |") == 2
+    assert "- `python -m street` (2.0 min)" in md
