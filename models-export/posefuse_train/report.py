@@ -199,28 +199,90 @@ def paper_recipe_section(runs: list[dict]) -> list[str]:
     return lines
 
 
+# (what, rows compared as b − a); the paper's differences come from its Tables 2 and 3
+STREET_DIFFS = (
+    ("multi-modal − LiDAR-only, reg + seg", "lidar_reg_seg", "fusion_reg_seg"),
+    ("multi-modal − LiDAR-only, reg", "lidar_reg", "fusion_reg"),
+    ("multi-modal − LiDAR-only, depth-corrected", "lidar_reg_seg_depth", "fusion_reg_seg_depth"),
+    ("seg − no seg, LiDAR-only", "lidar_reg", "lidar_reg_seg"),
+    ("seg − no seg, multi-modal", "fusion_reg", "fusion_reg_seg"),
+)
+
+
+def paper_difference(a: str, b: str) -> str:
+    if a not in PAPER_T3 or b not in PAPER_T3:
+        return "-"
+    d = [y - x for x, y in zip(PAPER_T3[a], PAPER_T3[b], strict=True)]
+    wrist = "-"
+    if (a, b) == ("lidar_reg_seg", "fusion_reg_seg"):
+        wrist = signed(PAPER_T2["wrist"][2] - PAPER_T2["wrist"][1])
+    return f"{signed(d[0])} / {signed(d[1], ' cm')} / {signed(d[2])} / {wrist}"
+
+
+def signed(v: float, unit: str = "") -> str:
+    return f"{v:+.2f}{unit}"
+
+
+def street_differences(groups: dict) -> str:
+    """Every comparison the paper draws, per (rotation, seed) group that holds both of its rows."""
+    header = ["comparison", "rotation", "seed", "ΔOKS@3D", "ΔMPJPE", "ΔOKS@2D", "Δwrist OKS@3D", "paper"]
+    body = []
+    for what, a, b in STREET_DIFFS:
+        for (rot, seed), rows in groups.items():
+            if a not in rows or b not in rows:
+                continue
+            ra, rb = rows[a]["metrics"], rows[b]["metrics"]
+            wa, wb = part_oks(ra, "wrist"), part_oks(rb, "wrist")
+            body.append(
+                [what, f"±{rot:g}°", str(seed)]
+                + [signed(100 * (rb["oks_acc_3d"] - ra["oks_acc_3d"]))]
+                + [signed(100 * (rb["mpjpe_3d_m"] - ra["mpjpe_3d_m"]), " cm")]
+                + [signed(100 * (rb["oks_acc_2d"] - ra["oks_acc_2d"]))]
+                + ["-" if wa is None or wb is None else signed(100 * (wb - wa)), paper_difference(a, b)]
+            )
+    return md_table(header, body)
+
+
 def street_section(runs: list[dict]) -> list[str]:
     """Rows trained and evaluated on `posefuse simulate --profile street` data (loose clothing,
-    things in hand, mixed-pixel returns): the per-keypoint table needs the run's own camera row."""
-    rows: dict = {}
+    things in hand, mixed-pixel returns), grouped by rotation and seed: one Table 3 per group, the
+    per-keypoint table of the first group with the run's own camera row, and the differences the
+    paper's conclusions rest on."""
+    groups: dict[tuple[float, int], dict] = {}
     for s in runs:
-        rows |= s["rows"]
+        for k, v in s["rows"].items():
+            if k != "camera":
+                groups.setdefault((v["config"]["rotate_deg"], v["config"].get("seed", 0)), {})[k] = v
+    groups = {g: groups[g] for g in sorted(groups, key=lambda g: (-g[0], g[1]))}
     s0 = runs[0]
-    rot = sorted({v["config"]["rotate_deg"] for k, v in rows.items() if k != "camera"})
     lq = s0["label_quality"]
     lines = [
         "## The street profile",
         "",
         f"Train `{s0['train']['path']}` ({s0['train']['count']}), held-out `{s0['test']['path']}` "
         f"({s0['test']['count']}), both `posefuse simulate --profile street` (docs/DATA.md), with "
-        f"the camera net trained on them; rotation ±{'/'.join(f'{r:g}' for r in rot)}° about z. "
-        "Pseudo labels: "
+        "the camera net trained on them. Pseudo labels: "
         + ", ".join(f"{k} {cm(v['mean_error_m'])}" for k, v in lq.items())
         + " from the 3D truth.",
         "",
-        table2(rows),
+        "Differences (b − a; OKS in points):",
         "",
-        table3(rows),
+        street_differences(groups),
+    ]
+    first = next(
+        (rows for rows in groups.values() if {"lidar_reg_seg", "fusion_reg_seg"} <= rows.keys()), None
+    )
+    if first is not None:
+        (rot, seed) = next(g for g, rows in groups.items() if rows is first)
+        lines += [
+            "",
+            f"Per keypoint, rotation ±{rot:g}°, point-net seed {seed}:",
+            "",
+            table2({"camera": s0["rows"]["camera"], **first}),
+        ]
+    for (rot, seed), rows in groups.items():
+        lines += ["", f"Rotation ±{rot:g}° about z, point-net seed {seed}:", "", table3(rows)]
+    lines += [
         "",
         "Commands:",
         "",

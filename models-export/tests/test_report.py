@@ -1,6 +1,7 @@
 import numpy as np
 
 from posefuse_train.ablation import degrade_lidar
+from posefuse_train.keypoints import NAMES
 from posefuse_train.report import heading_error_table, paper_recipe_section, street_section, table3
 
 METRICS = {"oks_acc_3d": 0.5, "mpjpe_3d_m": 0.1, "oks_acc_2d": 0.9, "pck_3d_10cm": 0.5, "pem_3d_m": 0.1}
@@ -73,26 +74,57 @@ def test_paper_recipe_rows_of_another_seed_get_their_own_table():
     assert md.count("| ✓ |  |  | eq. 1 |") == 2
 
 
-def test_street_section_has_per_keypoint_and_ablation_tables_from_its_own_runs():
-    per_kp = [{"name": f"k{i}", "oks": 0.5} for i in range(13)]
-    metrics = METRICS | {"per_keypoint_oks_3d": per_kp, "per_keypoint_oks_2d": per_kp}
-    cfg = {"seg": True, "fusion": False, "rotate_deg": 180.0}
-    run = {
-        "command": "python -m street",
-        "wall_s": 120.0,
-        "train": {"path": "data/street_train", "count": 20000},
-        "test": {"path": "data/street_test", "count": 2000},
-        "label_quality": {"eq1": {"mean_error_m": 0.0778, "labels": 10}},
-        "rows": {
-            "camera": {"metrics": metrics},
-            "lidar_reg_seg": {"config": cfg, "metrics": metrics},
-            "fusion_reg_seg": {"config": {**cfg, "fusion": True}, "metrics": metrics},
-        },
-    }
-    md = "\n".join(street_section([run]))
-    assert "## The street profile" in md and "±180°" in md and "eq1 7.78 cm" in md
+def test_street_section_groups_runs_by_rotation_and_seed_and_states_each_difference():
+    def metrics(oks3d, mpjpe, wrist):
+        wrists = [i for i, name in enumerate(NAMES) if name.endswith("wrist")]
+        per_kp = [{"name": n, "oks": wrist if i in wrists else 0.5} for i, n in enumerate(NAMES)]
+        return METRICS | {
+            "oks_acc_3d": oks3d,
+            "mpjpe_3d_m": mpjpe,
+            "per_keypoint_oks_3d": per_kp,
+            "per_keypoint_oks_2d": per_kp,
+        }
+
+    def run(command, seed, rot, lidar, fusion):
+        cfg = {"seg": True, "fusion": False, "rotate_deg": rot, "seed": seed}
+        return {
+            "command": command,
+            "wall_s": 120.0,
+            "train": {"path": "data/street_train", "count": 20000},
+            "test": {"path": "data/street_test", "count": 2000},
+            "label_quality": {"eq1": {"mean_error_m": 0.0778, "labels": 10}},
+            "rows": {
+                "camera": {"metrics": metrics(0.2, 0.2, 0.5)},
+                "lidar_reg_seg": {"config": cfg, "metrics": metrics(*lidar)},
+                "fusion_reg_seg": {"config": {**cfg, "fusion": True}, "metrics": metrics(*fusion)},
+            },
+        }
+
+    runs = [
+        run("python -m street", 0, 180.0, (0.40, 0.125, 0.30), (0.43, 0.121, 0.40)),
+        run("python -m street --seed 1", 1, 180.0, (0.41, 0.124, 0.30), (0.42, 0.122, 0.35)),
+        run("python -m street --rotate-deg 20", 0, 20.0, (0.60, 0.09, 0.5), (0.60, 0.09, 0.5)),
+    ]
+    md = "\n".join(street_section(runs))
+    assert "## The street profile" in md and "eq1 7.78 cm" in md
+    # a table per (rotation, seed), the paper's ±180° first, and none merged over another
+    tables = [line for line in md.splitlines() if line.startswith("Rotation ±")]
+    assert tables == [
+        "Rotation ±180° about z, point-net seed 0:",
+        "Rotation ±180° about z, point-net seed 1:",
+        "Rotation ±20° about z, point-net seed 0:",
+    ]
+    assert md.count("| ✓ | ✓ |") == 6
+    diffs = [line for line in md.splitlines() if line.startswith("| multi-modal − LiDAR-only, reg + seg")]
+    assert diffs == [
+        "| multi-modal − LiDAR-only, reg + seg | ±180° | 0 | +3.00 | -0.40 cm | +0.00 | +10.00 "
+        "| +3.56 / -0.48 cm / +5.41 / +16.60 |",
+        "| multi-modal − LiDAR-only, reg + seg | ±180° | 1 | +1.00 | -0.20 cm | +0.00 | +5.00 "
+        "| +3.56 / -0.48 cm / +5.41 / +16.60 |",
+        "| multi-modal − LiDAR-only, reg + seg | ±20° | 0 | +0.00 | +0.00 cm | +0.00 | +0.00 "
+        "| +3.56 / -0.48 cm / +5.41 / +16.60 |",
+    ]
+    # per keypoint from the first group, beside the paper's wrist numbers
     wrist = next(line for line in md.splitlines() if line.startswith("| wrist"))
-    # camera, LiDAR-only and multi-modal columns, each beside the paper's wrist number
-    assert "45.99%" in wrist and "30.37%" in wrist and "46.97%" in wrist
-    assert md.count("| ✓ | ✓ |") == 2
-    assert "- `python -m street` (2.0 min)" in md
+    assert "45.99%" in wrist and "30.37%" in wrist and "46.97%" in wrist and "40.00%" in wrist
+    assert "- `python -m street --seed 1` (2.0 min)" in md
