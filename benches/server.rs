@@ -1,6 +1,7 @@
 //! Server latency against raw ONNX Runtime, in one run: a single-person fusion request on the
 //! default bundle sent sequentially (HTTP JSON and gRPC), and the camera + point-fusion sessions
 //! run directly on the same model inputs. `cargo bench --bench server`; results in BENCHMARKS.md.
+//! `POSEFUSE_BENCH_N` sets the request count, `POSEFUSE_BENCH_MODEL_DIR` another bundle.
 
 // The allocator of the `posefuse` binary, so that the numbers are the server's.
 #[global_allocator]
@@ -56,7 +57,11 @@ fn main() {
     let n: usize =
         std::env::var("POSEFUSE_BENCH_N").ok().and_then(|v| v.parse().ok()).unwrap_or(if full { 1000 } else { 20 });
     let rt = tokio::runtime::Builder::new_multi_thread().enable_all().build().unwrap();
-    let cfg = config();
+    let mut cfg = config();
+    // another bundle (a larger camera net) shows how the fixed per-request costs weigh against inference
+    if let Some(dir) = std::env::var_os("POSEFUSE_BENCH_MODEL_DIR") {
+        cfg.model_dir = dir.into();
+    }
     println!(
         "bundle {} | workers {} | intra-op threads {} | {n} sequential requests",
         cfg.model_dir.display(),
