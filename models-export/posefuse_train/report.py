@@ -168,6 +168,15 @@ def by_range_table(table: list[dict]) -> str:
     return md_table(header, body)
 
 
+def paper_order(rows: dict) -> dict:
+    """The paper's Table 3 rows first, in its order, then ours."""
+    return {k: rows[k] for k in PAPER_T3 if k in rows} | {k: v for k, v in rows.items() if k not in PAPER_T3}
+
+
+def commands(runs: list[dict]) -> list[str]:
+    return ["", "Commands:", "", *[f"- `{s['command']}` ({s['wall_s'] / 60:.1f} min)" for s in runs]]
+
+
 def paper_recipe_section(runs: list[dict]) -> list[str]:
     """Rows trained with the paper's rotation augmentation ([0, 2π): the box heading is of no use),
     from one or more ablation runs on the same data and camera checkpoint; one table per seed."""
@@ -185,18 +194,8 @@ def paper_recipe_section(runs: list[dict]) -> list[str]:
         "camera) instead of from the box heading; same data, camera net and step count as above.",
     ]
     for seed in sorted(by_seed):
-        rows = by_seed[seed]
-        rows = {k: rows[k] for k in PAPER_T3 if k in rows} | {
-            k: v for k, v in rows.items() if k not in PAPER_T3
-        }
-        lines += ["", f"Point-net seed {seed}:", "", table3(rows)]
-    lines += [
-        "",
-        "Commands:",
-        "",
-        *[f"- `{s['command']}` ({s['wall_s'] / 60:.1f} min)" for s in runs],
-    ]
-    return lines
+        lines += ["", f"Point-net seed {seed}:", "", table3(paper_order(by_seed[seed]))]
+    return [*lines, *commands(runs)]
 
 
 # (what, rows compared as b − a); the paper's differences come from its Tables 2 and 3
@@ -281,14 +280,8 @@ def street_section(runs: list[dict]) -> list[str]:
             table2({"camera": s0["rows"]["camera"], **first}),
         ]
     for (rot, seed), rows in groups.items():
-        lines += ["", f"Rotation ±{rot:g}° about z, point-net seed {seed}:", "", table3(rows)]
-    lines += [
-        "",
-        "Commands:",
-        "",
-        *[f"- `{s['command']}` ({s['wall_s'] / 60:.1f} min)" for s in runs],
-    ]
-    return lines
+        lines += ["", f"Rotation ±{rot:g}° about z, point-net seed {seed}:", "", table3(paper_order(rows))]
+    return [*lines, *commands(runs)]
 
 
 def heading_error_table(table: list[dict]) -> str:
