@@ -298,6 +298,28 @@ def heading_error_table(table: list[dict]) -> str:
     return md_table(header, body)
 
 
+def bundle_source(main: dict, others: list[dict]) -> dict | None:
+    """The latest run that wrote a bundle: one given after the main ablation replaced its bundle."""
+    return next((r for r in reversed([main, *others]) if "bundle" in r), None)
+
+
+def default_bundle_section(run: dict, main: bool = True) -> list[str]:
+    """The bundle written by the latest run given that wrote one (`--bundle`)."""
+    b = run["bundle"]
+    origin = (
+        "this ablation"
+        if main
+        else f"`{run['command']}`, trained on `{run['train']['path']}`, evaluated on `{run['test']['path']}`"
+    )
+    return [
+        "## Default bundle",
+        "",
+        f"`{b['path']}` ({b['size_mb']:.1f} MB), written by {origin}: fusion model from row "
+        f"`{b['fusion_row']}`, LiDAR-only model from row `{b['lidar_row']}`; their held-out metrics are in "
+        "its `manifest.json`.",
+    ]
+
+
 def results_markdown(
     s: dict,
     backbones: dict | None = None,
@@ -410,16 +432,9 @@ def results_markdown(
             "",
             backbone_table(backbones),
         ]
-    if "bundle" in s:
-        b = s["bundle"]
-        lines += [
-            "",
-            "## Default bundle",
-            "",
-            f"`{b['path']}` ({b['size_mb']:.1f} MB): fusion model from row `{b['fusion_row']}`, "
-            "LiDAR-only model "
-            f"from row `{b['lidar_row']}`; their held-out metrics are in its `manifest.json`.",
-        ]
+    bundle_run = bundle_source(s, street or [])
+    if bundle_run is not None:
+        lines += ["", *default_bundle_section(bundle_run, main=bundle_run is s)]
     lines += ["", CHOICES]
     return "\n".join(lines)
 

@@ -2,7 +2,14 @@ import numpy as np
 
 from posefuse_train.ablation import degrade_lidar
 from posefuse_train.keypoints import NAMES
-from posefuse_train.report import heading_error_table, paper_recipe_section, street_section, table3
+from posefuse_train.report import (
+    bundle_source,
+    default_bundle_section,
+    heading_error_table,
+    paper_recipe_section,
+    street_section,
+    table3,
+)
 
 METRICS = {"oks_acc_3d": 0.5, "mpjpe_3d_m": 0.1, "oks_acc_2d": 0.9, "pck_3d_10cm": 0.5, "pem_3d_m": 0.1}
 
@@ -128,3 +135,21 @@ def test_street_section_groups_runs_by_rotation_and_seed_and_states_each_differe
     wrist = next(line for line in md.splitlines() if line.startswith("| wrist"))
     assert "45.99%" in wrist and "30.37%" in wrist and "46.97%" in wrist and "40.00%" in wrist
     assert "- `python -m street --seed 1` (2.0 min)" in md
+
+
+def test_the_default_bundle_section_names_the_latest_run_that_wrote_the_bundle():
+    bundle = {"path": "models/default", "size_mb": 5.3, "fusion_row": "f", "lidar_row": "l"}
+    main = {"command": "python -m main", "bundle": bundle}
+    street = {
+        "command": "python -m street --bundle models/default",
+        "train": {"path": "data/street_train"},
+        "test": {"path": "data/street_test"},
+        "bundle": {**bundle, "fusion_row": "fusion_reg_seg_depth"},
+    }
+    assert bundle_source(main, []) is main
+    assert bundle_source(main, [street, {"command": "no bundle"}]) is street
+    assert bundle_source({"command": "none"}, []) is None
+    md = "\n".join(default_bundle_section(street, main=False))
+    assert "written by `python -m street --bundle models/default`, trained on `data/street_train`" in md
+    assert "fusion model from row `fusion_reg_seg_depth`" in md
+    assert "written by this ablation" in "\n".join(default_bundle_section(main))
