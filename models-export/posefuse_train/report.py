@@ -254,7 +254,7 @@ def street_section(runs: list[dict]) -> list[str]:
                 groups.setdefault((v["config"]["rotate_deg"], v["config"].get("seed", 0)), {})[k] = v
     groups = {g: groups[g] for g in sorted(groups, key=lambda g: (-g[0], g[1]))}
     s0 = runs[0]
-    lq = s0["label_quality"]
+    lq = {k: v for r in runs for k, v in r["label_quality"].items()}
     lines = [
         "## The street profile",
         "",
