@@ -22,8 +22,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from . import __version__, evaluate, labels, report
 from . import data as data_mod
-from . import evaluate, labels, report
 from .config import CameraNetConfig, PointNetConfig
 from .export import camera_from_checkpoint, export_bundle, export_onnx, measure_latency
 from .fusion import smooth_heatmaps
@@ -73,6 +73,9 @@ def main(argv=None):
     p.add_argument("--test", required=True)
     p.add_argument("--out", default="runs/ablation")
     p.add_argument("--bundle", help="also write the default bundle here (best fusion + LiDAR rows)")
+    p.add_argument(
+        "--bundle-version", default=__version__, help="the bundle's version, which every response names"
+    )
     p.add_argument("--results", default="docs/RESULTS.md", help="markdown report ('' to skip)")
     p.add_argument(
         "--backbones", help="backbones.json of `posefuse_train.backbones` to include in the report"
@@ -335,6 +338,7 @@ def main(argv=None):
                     "lidar": results[best_l]["metrics"],
                     "camera": results["camera"]["metrics"],
                 },
+                version=a.bundle_version,
             )
             summary["bundle"] = {
                 "path": a.bundle,

@@ -231,6 +231,7 @@ def main(argv=None):
     p.add_argument("--lidar", help="LiDAR-only point-net checkpoint (.pt)")
     p.add_argument("--metrics", help="JSON file with held-out metrics {fusion, lidar, camera}")
     p.add_argument("--name", default="default")
+    p.add_argument("--version", default=__version__, help="the bundle's version, which every response names")
     p.add_argument("--tol", type=float, default=1e-4)
     a = p.parse_args(argv)
     if a.untrained:
@@ -265,6 +266,7 @@ def main(argv=None):
         training=training,
         metrics=metrics,
         name=a.name,
+        version=a.version,
         tol=a.tol,
     )
     size = sum((Path(a.out) / m["file"]).stat().st_size for m in manifest["models"].values())

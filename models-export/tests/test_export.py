@@ -7,6 +7,7 @@ import onnxruntime as ort
 import pytest
 import torch
 
+import posefuse_train
 from posefuse_train.config import CameraNetConfig, PipelineConfig, PointNetConfig
 from posefuse_train.export import ParityError, check_parity, export_bundle, export_onnx, untrained_models
 from posefuse_train.keypoints import NAMES, WAYMO_TYPES, K
@@ -92,6 +93,7 @@ def test_cli_writes_an_untrained_bundle(tmp_path, capsys):
 
     main(["--untrained", "--out", str(tmp_path / "u"), "--image-size", "32", "--backbone", "resnet18-w16"])
     m = json.loads((tmp_path / "u" / "manifest.json").read_text())
+    assert m["version"] == posefuse_train.__version__
     assert m["preprocessing"]["image_size"] == 32 and m["models"]["camera"]["outputs"]["heatmaps"] == [
         -1,
         K,
@@ -100,3 +102,23 @@ def test_cli_writes_an_untrained_bundle(tmp_path, capsys):
     ]
     total = sum((tmp_path / "u" / v["file"]).stat().st_size for v in m["models"].values())
     assert total < 30e6
+
+
+def test_cli_sets_the_bundle_version(tmp_path):
+    from posefuse_train.export import main
+
+    out = tmp_path / "v"
+    main(
+        [
+            "--untrained",
+            "--out",
+            str(out),
+            "--image-size",
+            "32",
+            "--backbone",
+            "resnet18-w16",
+            "--version",
+            "7.1.2",
+        ]
+    )
+    assert json.loads((out / "manifest.json").read_text())["version"] == "7.1.2"
