@@ -173,6 +173,17 @@ def paper_order(rows: dict) -> dict:
     return {k: rows[k] for k in PAPER_T3 if k in rows} | {k: v for k, v in rows.items() if k not in PAPER_T3}
 
 
+def point_rows_by(runs: list[dict], key) -> dict:
+    """The point-net rows of several runs, grouped by key(row config); a later run's row replaces
+    an earlier one of the same name in its group."""
+    groups: dict = {}
+    for run in runs:
+        for name, row in run["rows"].items():
+            if name != "camera":
+                groups.setdefault(key(row["config"]), {})[name] = row
+    return groups
+
+
 def commands(runs: list[dict]) -> list[str]:
     return ["", "Commands:", "", *[f"- `{s['command']}` ({s['wall_s'] / 60:.1f} min)" for s in runs]]
 
@@ -180,11 +191,7 @@ def commands(runs: list[dict]) -> list[str]:
 def paper_recipe_section(runs: list[dict]) -> list[str]:
     """Rows trained with the paper's rotation augmentation ([0, 2π): the box heading is of no use),
     from one or more ablation runs on the same data and camera checkpoint; one table per seed."""
-    by_seed: dict[int, dict] = {}
-    for s in runs:
-        for k, v in s["rows"].items():
-            if k != "camera":
-                by_seed.setdefault(v["config"].get("seed", 0), {})[k] = v
+    by_seed = point_rows_by(runs, lambda c: c.get("seed", 0))
     rotations = sorted({v["config"]["rotate_deg"] for rows in by_seed.values() for v in rows.values()})
     lines = [
         "## Table 3 with the paper's rotation augmentation",
@@ -247,11 +254,7 @@ def street_section(runs: list[dict]) -> list[str]:
     things in hand, mixed-pixel returns), grouped by rotation and seed: one Table 3 per group, the
     per-keypoint table of the first group with the run's own camera row, and the differences the
     paper's conclusions rest on."""
-    groups: dict[tuple[float, int], dict] = {}
-    for s in runs:
-        for k, v in s["rows"].items():
-            if k != "camera":
-                groups.setdefault((v["config"]["rotate_deg"], v["config"].get("seed", 0)), {})[k] = v
+    groups = point_rows_by(runs, lambda c: (c["rotate_deg"], c.get("seed", 0)))
     groups = {g: groups[g] for g in sorted(groups, key=lambda g: (-g[0], g[1]))}
     s0 = runs[0]
     lq = {k: v for r in runs for k, v in r["label_quality"].items()}
@@ -269,15 +272,15 @@ def street_section(runs: list[dict]) -> list[str]:
         street_differences(groups),
     ]
     first = next(
-        (rows for rows in groups.values() if {"lidar_reg_seg", "fusion_reg_seg"} <= rows.keys()), None
+        (item for item in groups.items() if {"lidar_reg_seg", "fusion_reg_seg"} <= item[1].keys()), None
     )
     if first is not None:
-        (rot, seed) = next(g for g, rows in groups.items() if rows is first)
+        (rot, seed), rows = first
         lines += [
             "",
             f"Per keypoint, rotation ±{rot:g}°, point-net seed {seed}:",
             "",
-            table2({"camera": s0["rows"]["camera"], **first}),
+            table2({"camera": s0["rows"]["camera"], **rows}),
         ]
     for (rot, seed), rows in groups.items():
         lines += ["", f"Rotation ±{rot:g}° about z, point-net seed {seed}:", "", table3(paper_order(rows))]
