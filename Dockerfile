@@ -1,24 +1,28 @@
 # posefuse server image: `docker build -t posefuse .` then `docker run -p 8080:8080 posefuse`.
 # The builder uses the same set-up script as CI (scripts/setup.sh) to obtain ONNX Runtime's shared
 # library from the pinned Python wheel, so the server and the trainer's checks use one version.
+# scripts/container-check.sh builds the image and checks it end to end.
 
-FROM rust:1.92-bookworm AS builder
+# The toolchain CI builds and tests with (Cargo.toml's rust-version is the oldest one supported).
+ARG RUST_VERSION=1.95
+FROM rust:${RUST_VERSION}-bookworm AS builder
 RUN apt-get update \
-    && apt-get install -y --no-install-recommends python3 python3-venv python3-pip \
+    && apt-get install -y --no-install-recommends python3 python3-venv \
     && rm -rf /var/lib/apt/lists/*
 WORKDIR /src
-# Only PyPI is used (the set-up installs the trainer too; the runtime stage keeps just the library).
+# Only PyPI is used, and only for ONNX Runtime's wheel: the server needs no PyTorch.
 ENV PIP_NO_CACHE_DIR=1
 COPY scripts scripts
-COPY models-export models-export
-RUN bash scripts/setup.sh
+COPY models-export/requirements.txt models-export/requirements.txt
+RUN bash scripts/setup.sh --runtime-only
 COPY Cargo.toml Cargo.lock build.rs rustfmt.toml ./
 COPY proto proto
 COPY benches benches
 COPY src src
+# No debug info: the image is for serving (the repository's release profile keeps it for profiling).
 RUN --mount=type=cache,target=/usr/local/cargo/registry \
     --mount=type=cache,target=/src/target \
-    cargo build --release --locked --bin posefuse \
+    CARGO_PROFILE_RELEASE_DEBUG=0 cargo build --release --locked --bin posefuse \
     && cp target/release/posefuse /usr/local/bin/posefuse
 
 FROM debian:bookworm-slim
@@ -36,7 +40,8 @@ ENV ORT_DYLIB_PATH=/app/.ort/lib/libonnxruntime.so \
     RUST_LOG=info,ort=warn
 USER posefuse
 EXPOSE 8080
+# Healthy means ready to serve (bundle loaded and warmed), on whatever port POSEFUSE_ADDR names.
 HEALTHCHECK --interval=15s --timeout=3s --start-period=30s --retries=3 \
-    CMD curl -fsS http://127.0.0.1:8080/healthz || exit 1
+    CMD curl -fsS "http://127.0.0.1:${POSEFUSE_ADDR##*:}/readyz" || exit 1
 ENTRYPOINT ["posefuse"]
 CMD ["serve"]
