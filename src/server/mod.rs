@@ -178,6 +178,8 @@ pub fn load_runtime(model_dir: &std::path::Path, cfg: &RuntimeConfig) -> Result<
     if bundle.trained() == Some(false) {
         tracing::warn!(bundle = %model_dir.display(), "serving an UNTRAINED bundle (tests only)");
     }
+    let m = &bundle.manifest;
+    tracing::info!(bundle = %model_dir.display(), name = %m.name, version = %m.version, "bundle loaded");
     Ok(Arc::new(Runtime::start(bundle, cfg)?))
 }
 
@@ -237,6 +239,7 @@ impl App {
                 reporter.set_service_status(grpc_name, tonic_health::ServingStatus::Serving).await;
                 // Only now, so that /readyz and gRPC health never disagree.
                 ready.store(true, Ordering::SeqCst);
+                tracing::info!("warmed up: ready");
             })
         };
         let flag = state.shutting_down.clone();
@@ -315,7 +318,9 @@ pub async fn shutdown_signal() {
 fn init_tracing(json: bool) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,ort=warn"));
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr);
+    // Colour codes only for a person at a terminal, not in a container's or a collector's log.
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi);
     let _ = if json { builder.json().try_init() } else { builder.try_init() };
 }
 
