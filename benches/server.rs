@@ -1,7 +1,9 @@
 //! Server latency against raw ONNX Runtime, in one run: a single-person fusion request on the
 //! default bundle sent sequentially (HTTP JSON and gRPC), and the camera + point-fusion sessions
 //! run directly on the same model inputs. `cargo bench --bench server`; results in BENCHMARKS.md.
-//! `POSEFUSE_BENCH_N` sets the request count, `POSEFUSE_BENCH_MODEL_DIR` another bundle.
+//! `POSEFUSE_BENCH_N` sets the request count, `POSEFUSE_BENCH_MODEL_DIR` another bundle, and
+//! `POSEFUSE_BENCH_FRAME` a request file (e.g. a simulator fixture: a 1920×1280 JPEG and a full
+//! LiDAR sweep) whose first person is sent instead of the built-in 640×480 PNG frame.
 
 // The allocator of the `posefuse` binary, so that the numbers are the server's.
 #[global_allocator]
@@ -12,6 +14,9 @@ mod server_support;
 
 use std::time::{Duration, Instant};
 
+use base64::Engine;
+use posefuse::frame::Frame;
+use posefuse::geometry::Camera;
 use posefuse::keypoints::K;
 use posefuse::pipeline::{crop_rgb, fused_points, normalize, prepare_person, smoothed_features};
 use posefuse::runtime::{env, Bundle, ModelKind, Models};
@@ -34,15 +39,35 @@ fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
 
+/// The request: the built-in one-person frame, or the first person of `POSEFUSE_BENCH_FRAME`.
+fn bench_frame() -> (Frame, String) {
+    match std::env::var_os("POSEFUSE_BENCH_FRAME") {
+        None => (fusion_frame(), "640x480 PNG, 300 points".into()),
+        Some(path) => {
+            let mut frame: Frame = serde_json::from_slice(&std::fs::read(&path).unwrap()).unwrap();
+            frame.persons.truncate(1);
+            for p in &mut frame.persons {
+                p.ground_truth = None;
+            }
+            let c = &frame.calibration;
+            let label = format!("{}x{} image, {} points", c.width, c.height, frame.points.decode().unwrap().len());
+            (frame, label)
+        }
+    }
+}
+
+fn image_bytes(frame: &Frame) -> Vec<u8> {
+    base64::engine::general_purpose::STANDARD.decode(frame.image.as_ref().unwrap()).unwrap()
+}
+
 /// The model inputs the server builds for the frame's person, through the same pipeline calls.
-fn model_inputs(models: &mut Models, bundle: &Bundle) -> (Vec<f32>, Vec<f32>) {
-    let frame = fusion_frame();
+fn model_inputs(models: &mut Models, bundle: &Bundle, frame: &Frame) -> (Vec<f32>, Vec<f32>) {
     let cfg = bundle.config();
-    let png = image_png(&[frame.persons[0].box_2d.unwrap()]);
-    let img = image::load_from_memory(&png).unwrap().to_rgb8();
+    let img = image::load_from_memory(&image_bytes(frame)).unwrap().to_rgb8();
     let p = &frame.persons[0];
+    let camera = Camera::from_calibration(&frame.calibration).unwrap();
     let prepared =
-        prepare_person(None, Some(&camera()), &frame.points.decode().unwrap(), &p.box_3d, p.box_2d.as_ref(), cfg);
+        prepare_person(None, Some(&camera), &frame.points.decode().unwrap(), &p.box_3d, p.box_2d.as_ref(), cfg);
     let image_input = normalize(&crop_rgb(&img, prepared.crop.as_ref().unwrap()), cfg);
     let input = prepared.input.unwrap();
     let hm = models.run(ModelKind::Camera, 1, &image_input).unwrap();
@@ -73,7 +98,8 @@ fn main() {
     let bundle = Bundle::load(&cfg.model_dir).unwrap();
     let ort_env = env::environment(&env::resolve_lib(None)).unwrap();
     let mut models = Models::load(&ort_env, &bundle, cfg.runtime.intra_threads).unwrap();
-    let (image_input, fused) = model_inputs(&mut models, &bundle);
+    let (frame, frame_label) = bench_frame();
+    let (image_input, fused) = model_inputs(&mut models, &bundle, &frame);
     for _ in 0..50 {
         models.run(ModelKind::Camera, 1, &image_input).unwrap();
         models.run(ModelKind::PointFusion, 1, &fused).unwrap();
@@ -81,11 +107,10 @@ fn main() {
 
     let server = rt.block_on(start(cfg));
     let client = reqwest::Client::new();
-    let body = serde_json::to_vec(&fusion_frame()).unwrap();
-    let frame = fusion_frame();
+    let body = serde_json::to_vec(&frame).unwrap();
     let grpc_req = proto::PredictRequest {
         frame_id: String::new(),
-        image: image_png(&[frame.persons[0].box_2d.unwrap()]),
+        image: image_bytes(&frame),
         calibration: Some(proto::Calibration {
             intrinsic: frame.calibration.intrinsic.clone(),
             extrinsic: frame.calibration.extrinsic.clone(),
@@ -135,6 +160,8 @@ fn main() {
             (t.elapsed(), bytes)
         });
         let resp: posefuse::server::api::PoseResponse = serde_json::from_slice(&bytes).unwrap();
+        // raw ONNX Runtime runs the fusion models: the request must take the same path
+        assert_eq!(resp.persons[0].mode, posefuse::server::api::Mode::Fusion, "{}", resp.persons[0].mode_reason);
         server_times.borrow_mut().push(resp.timings);
         elapsed
     };
@@ -172,7 +199,7 @@ fn main() {
         g.push(grpc_once());
         health.push(health_once());
     }
-    println!("request body {} bytes (640x480 PNG, 300 points)", body.len());
+    println!("request body {} bytes ({frame_label})", body.len());
     let (raw50, raw99) = summary("raw ONNX Runtime (camera + fusion)", raw);
     let (h50, h99) = summary("HTTP POST /v1/poses", http);
     let (g50, g99) = summary("gRPC Predict", g);
