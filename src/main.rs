@@ -1,4 +1,4 @@
-//! The `posefuse` command line: serve, predict, eval, simulate.
+//! The `posefuse` command line: serve, predict, eval, simulate, health.
 
 use clap::{Parser, Subcommand};
 
@@ -25,6 +25,8 @@ enum Command {
     Eval(posefuse::server::EvalArgs),
     /// Render synthetic camera + LiDAR pedestrians: training shards, request fixtures, previews.
     Simulate(posefuse::sim::SimulateArgs),
+    /// Ask a running server whether it is ready (gRPC health); exit status 0 only when it is.
+    Health(posefuse::server::health::HealthArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -34,5 +36,6 @@ fn main() -> anyhow::Result<()> {
         Command::Predict(a) => posefuse::server::predict_command(a),
         Command::Eval(a) => posefuse::server::eval_command(a),
         Command::Simulate(a) => posefuse::sim::simulate_command(a),
+        Command::Health(a) => posefuse::server::health::health_command(a),
     }
 }

@@ -1,4 +1,4 @@
-//! gRPC on the HTTP port: Predict, PredictStream, health, limits and overload.
+//! gRPC on the HTTP port: Predict, PredictStream, health (and `posefuse health`), limits and overload.
 
 mod server_support;
 
@@ -150,6 +150,37 @@ async fn health_service_reports_serving() {
     let e = h.check(HealthCheckRequest { service: "nope".into() }).await.unwrap_err();
     assert_eq!(e.code(), tonic::Code::NotFound);
     s.shutdown().await.unwrap();
+}
+
+/// `posefuse health --addr ADDR`, as the container's HEALTHCHECK runs it.
+async fn health_command(addr: String) -> std::process::Output {
+    tokio::task::spawn_blocking(move || {
+        std::process::Command::new(env!("CARGO_BIN_EXE_posefuse"))
+            .args(["health", "--addr", &addr, "--timeout-s", "5"])
+            .env_remove("POSEFUSE_ADDR")
+            .output()
+            .unwrap()
+    })
+    .await
+    .unwrap()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn the_health_command_passes_on_a_ready_server_and_fails_once_it_is_gone() {
+    let s = start(config()).await;
+    let port = s.addr.port();
+    // the server's own address, and the wildcard form that POSEFUSE_ADDR holds in the container
+    for addr in [s.addr.to_string(), format!("0.0.0.0:{port}")] {
+        let out = health_command(addr.clone()).await;
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        assert!(out.status.success(), "{addr}: {}", String::from_utf8_lossy(&out.stderr));
+        assert!(stdout.contains("SERVING"), "{stdout}");
+    }
+    s.shutdown().await.unwrap();
+    let out = health_command(format!("127.0.0.1:{port}")).await;
+    assert!(!out.status.success());
+    let stderr = String::from_utf8_lossy(&out.stderr);
+    assert!(stderr.contains("cannot connect"), "{stderr}");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

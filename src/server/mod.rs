@@ -5,6 +5,7 @@ pub mod api;
 pub mod errors;
 pub mod eval;
 pub mod grpc;
+pub mod health;
 pub mod http;
 pub mod metrics;
 pub mod predict;

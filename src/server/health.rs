@@ -1,0 +1,72 @@
+//! `posefuse health`: asks a running server whether it is ready to serve, through the standard
+//! gRPC health service. The container's HEALTHCHECK uses it, so the image needs no HTTP client.
+
+use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
+use std::time::Duration;
+
+use anyhow::Context;
+use tonic_health::pb::health_check_response::ServingStatus;
+use tonic_health::pb::health_client::HealthClient;
+use tonic_health::pb::HealthCheckRequest;
+
+/// Arguments of `posefuse health`.
+#[derive(Debug, clap::Args)]
+pub struct HealthArgs {
+    /// The server's address; a wildcard (0.0.0.0, [::]) means this host, so `serve`'s
+    /// POSEFUSE_ADDR works unchanged.
+    #[arg(long, env = "POSEFUSE_ADDR", default_value = "127.0.0.1:8080")]
+    pub addr: SocketAddr,
+    /// Seconds to wait for the answer.
+    #[arg(long, default_value_t = 3)]
+    pub timeout_s: u64,
+}
+
+/// The address to connect to for a listening address (a wildcard is reached on loopback).
+pub fn connect_addr(listen: SocketAddr) -> SocketAddr {
+    match listen.ip() {
+        IpAddr::V4(ip) if ip.is_unspecified() => SocketAddr::new(IpAddr::V4(Ipv4Addr::LOCALHOST), listen.port()),
+        IpAddr::V6(ip) if ip.is_unspecified() => SocketAddr::new(IpAddr::V6(Ipv6Addr::LOCALHOST), listen.port()),
+        _ => listen,
+    }
+}
+
+/// The server's overall status ("" service): SERVING once the bundle is loaded and warmed up,
+/// NOT_SERVING while it warms up or shuts down.
+pub async fn check(addr: SocketAddr, timeout: Duration) -> anyhow::Result<ServingStatus> {
+    let addr = connect_addr(addr);
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))?
+        .connect_timeout(timeout)
+        .timeout(timeout)
+        .connect()
+        .await
+        .with_context(|| format!("cannot connect to {addr}"))?;
+    let response = HealthClient::new(channel)
+        .check(HealthCheckRequest { service: String::new() })
+        .await
+        .map_err(|e| anyhow::anyhow!("health check at {addr} failed: {}", e.message()))?;
+    Ok(ServingStatus::try_from(response.into_inner().status).unwrap_or(ServingStatus::Unknown))
+}
+
+/// Runs `posefuse health`: exit status 0 only when the server is serving.
+pub fn health_command(a: HealthArgs) -> anyhow::Result<()> {
+    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    let status = runtime.block_on(check(a.addr, Duration::from_secs(a.timeout_s)))?;
+    if status != ServingStatus::Serving {
+        anyhow::bail!("{} is not ready: {}", connect_addr(a.addr), status.as_str_name());
+    }
+    println!("{}: {}", connect_addr(a.addr), status.as_str_name());
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_wildcard_address_is_checked_on_loopback() {
+        let at = |s: &str| connect_addr(s.parse().unwrap()).to_string();
+        assert_eq!(at("0.0.0.0:8080"), "127.0.0.1:8080");
+        assert_eq!(at("[::]:9000"), "[::1]:9000");
+        assert_eq!(at("10.1.2.3:8080"), "10.1.2.3:8080");
+    }
+}
