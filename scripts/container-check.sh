@@ -99,7 +99,8 @@ for _ in $(seq 120); do
   curl -fsS "http://127.0.0.1:$((PORT + 1))/readyz" >/dev/null 2>&1 && break
   sleep 1
 done
-"$C" logs "$name2" 2>&1 | grep -q /models/mine || fail "the log does not name /models/mine"
+"$C" logs "$name2" >"$work/override.log" 2>&1
+grep -q /models/mine "$work/override.log" || fail "the log does not name /models/mine: $(tail -n 3 "$work/override.log")"
 curl -fsS "http://127.0.0.1:$((PORT + 1))/v1/poses" -H 'content-type: application/json' -d @"$frame" >/dev/null \
   || fail "the overriding bundle does not serve"
 echo "served from /models/mine"
