@@ -17,6 +17,14 @@ cleanup() {
 trap cleanup EXIT
 fail() { echo "FAIL: $*" >&2; exit 1; }
 step() { echo "== $*"; }
+# Waits up to 120 s for /readyz on PORT; fails with container NAME's last log lines.
+wait_ready() {
+  for _ in $(seq 120); do
+    curl -fsS "http://127.0.0.1:$1/readyz" >/dev/null 2>&1 && return 0
+    sleep 1
+  done
+  fail "not ready after 120 s: $("$C" logs "$2" 2>&1 | tail -n 5)"
+}
 
 step "build $IMAGE"
 start=$(date +%s)
@@ -37,12 +45,8 @@ step "serve the baked-in bundle"
 name=posefuse-check-$$
 names+=("$name")
 "$C" run -d --name "$name" -p "127.0.0.1:$PORT:8080" "$IMAGE" >/dev/null
-for _ in $(seq 120); do
-  curl -fsS "http://127.0.0.1:$PORT/readyz" >/dev/null 2>&1 && break
-  sleep 1
-done
-curl -fsS "http://127.0.0.1:$PORT/readyz" || fail "not ready after 120 s: $("$C" logs "$name" 2>&1 | tail -n 5)"
-echo
+wait_ready "$PORT" "$name"
+echo ready
 
 step "a frame over the published port"
 curl -fsS "http://127.0.0.1:$PORT/v1/poses" -H 'content-type: application/json' -d @"$frame" >"$work/response.json" \
@@ -95,10 +99,7 @@ name2=posefuse-check-override-$$
 names+=("$name2")
 "$C" run -d --name "$name2" -p "127.0.0.1:$((PORT + 1)):8080" -v "$work/models:/models:ro" \
   -e POSEFUSE_MODEL_DIR=/models/mine "$IMAGE" >/dev/null
-for _ in $(seq 120); do
-  curl -fsS "http://127.0.0.1:$((PORT + 1))/readyz" >/dev/null 2>&1 && break
-  sleep 1
-done
+wait_ready "$((PORT + 1))" "$name2"
 "$C" logs "$name2" >"$work/override.log" 2>&1
 grep -q /models/mine "$work/override.log" || fail "the log does not name /models/mine: $(tail -n 3 "$work/override.log")"
 curl -fsS "http://127.0.0.1:$((PORT + 1))/v1/poses" -H 'content-type: application/json' -d @"$frame" >/dev/null \

@@ -30,10 +30,10 @@ pub fn connect_addr(listen: SocketAddr) -> SocketAddr {
     }
 }
 
-/// The server's overall status ("" service): SERVING once the bundle is loaded and warmed up,
-/// NOT_SERVING while it warms up or shuts down.
+/// The overall status ("" service) of the server at `addr` (a connectable address, see
+/// [`connect_addr`]): SERVING once the bundle is loaded and warmed up, NOT_SERVING while it warms
+/// up or shuts down.
 pub async fn check(addr: SocketAddr, timeout: Duration) -> anyhow::Result<ServingStatus> {
-    let addr = connect_addr(addr);
     let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))?
         .connect_timeout(timeout)
         .timeout(timeout)
@@ -49,12 +49,13 @@ pub async fn check(addr: SocketAddr, timeout: Duration) -> anyhow::Result<Servin
 
 /// Runs `posefuse health`: exit status 0 only when the server is serving.
 pub fn health_command(a: HealthArgs) -> anyhow::Result<()> {
+    let addr = connect_addr(a.addr);
     let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
-    let status = runtime.block_on(check(a.addr, Duration::from_secs(a.timeout_s)))?;
+    let status = runtime.block_on(check(addr, Duration::from_secs(a.timeout_s)))?;
     if status != ServingStatus::Serving {
-        anyhow::bail!("{} is not ready: {}", connect_addr(a.addr), status.as_str_name());
+        anyhow::bail!("{addr} is not ready: {}", status.as_str_name());
     }
-    println!("{}: {}", connect_addr(a.addr), status.as_str_name());
+    println!("{addr}: {}", status.as_str_name());
     Ok(())
 }
 
