@@ -20,8 +20,8 @@ use posefuse::geometry::Camera;
 use posefuse::keypoints::K;
 use posefuse::pipeline::{crop_rgb, fused_points, normalize, prepare_person, smoothed_features};
 use posefuse::runtime::{env, Bundle, ModelKind, Models};
+use posefuse::server::grpc::frame_to_proto;
 use posefuse::server::grpc::proto::posefuse_client::PosefuseClient;
-use posefuse::server::grpc::proto::{self};
 use server_support::*;
 
 fn percentile(sorted: &[Duration], p: f64) -> Duration {
@@ -108,40 +108,7 @@ fn main() {
     let server = rt.block_on(start(cfg));
     let client = reqwest::Client::new();
     let body = serde_json::to_vec(&frame).unwrap();
-    let grpc_req = proto::PredictRequest {
-        frame_id: String::new(),
-        image: image_bytes(&frame),
-        calibration: Some(proto::Calibration {
-            intrinsic: frame.calibration.intrinsic.clone(),
-            extrinsic: frame.calibration.extrinsic.clone(),
-            width: frame.calibration.width,
-            height: frame.calibration.height,
-        }),
-        points: frame.points.decode().unwrap().iter().flatten().flat_map(|v| v.to_le_bytes()).collect(),
-        persons: frame
-            .persons
-            .iter()
-            .map(|p| proto::Person {
-                id: p.id.clone(),
-                box_2d: p.box_2d.map(|b| proto::Box2d {
-                    center_x: b.center_x,
-                    center_y: b.center_y,
-                    width: b.width,
-                    height: b.height,
-                }),
-                box_3d: Some(proto::Box3d {
-                    center_x: p.box_3d.center_x,
-                    center_y: p.box_3d.center_y,
-                    center_z: p.box_3d.center_z,
-                    length: p.box_3d.length,
-                    width: p.box_3d.width,
-                    height: p.box_3d.height,
-                    heading: p.box_3d.heading,
-                }),
-            })
-            .collect(),
-        mode: proto::Mode::Auto as i32,
-    };
+    let grpc_req = frame_to_proto(&frame, image_bytes(&frame)).unwrap();
     let mut grpc = rt.block_on(PosefuseClient::connect(server.url(""))).unwrap();
 
     let server_times = std::cell::RefCell::new(Vec::new());
@@ -159,9 +126,9 @@ fn main() {
             let bytes = r.bytes().await.unwrap();
             (t.elapsed(), bytes)
         });
-        let resp: posefuse::server::api::PoseResponse = serde_json::from_slice(&bytes).unwrap();
+        let resp: posefuse::service::api::PoseResponse = serde_json::from_slice(&bytes).unwrap();
         // raw ONNX Runtime runs the fusion models: the request must take the same path
-        assert_eq!(resp.persons[0].mode, posefuse::server::api::Mode::Fusion, "{}", resp.persons[0].mode_reason);
+        assert_eq!(resp.persons[0].mode, posefuse::service::api::Mode::Fusion, "{}", resp.persons[0].mode_reason);
         server_times.borrow_mut().push(resp.timings);
         elapsed
     };
@@ -205,7 +172,7 @@ fn main() {
     let (g50, g99) = summary("gRPC Predict", g);
     summary("HTTP GET /healthz (transport floor)", health);
     let t = server_times.borrow();
-    let mean = |f: fn(&posefuse::server::api::Timings) -> f64| t.iter().map(f).sum::<f64>() / t.len() as f64;
+    let mean = |f: fn(&posefuse::service::api::Timings) -> f64| t.iter().map(f).sum::<f64>() / t.len() as f64;
     println!(
         "server-side means (HTTP): decode {:.3} ms, pre/post {:.3} ms, queue {:.3} ms, inference {:.3} ms, total {:.3} ms",
         mean(|x| x.decode_ms),

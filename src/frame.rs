@@ -58,7 +58,9 @@ pub enum Points {
 }
 
 /// Which model path to run.
-#[derive(Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash, utoipa::ToSchema)]
+#[derive(
+    Debug, Clone, Copy, Default, Serialize, Deserialize, PartialEq, Eq, Hash, utoipa::ToSchema, clap::ValueEnum,
+)]
 #[serde(rename_all = "lowercase")]
 pub enum RequestedMode {
     /// Fusion when both modalities are usable, else the best available.
@@ -155,7 +157,7 @@ impl Points {
                         format!("{} bytes is not a whole number of f32 xyz triples (12 bytes each)", bytes.len()),
                     ));
                 }
-                bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+                f32_from_le_bytes(&bytes)
             }
         };
         if !flat.len().is_multiple_of(3) {
@@ -172,9 +174,19 @@ impl Points {
 
     /// Encodes points in the compact base64 form.
     pub fn encode(points: &[[f32; 3]]) -> Points {
-        let bytes: Vec<u8> = points.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
-        Points::Encoded { b64: base64::engine::general_purpose::STANDARD.encode(bytes) }
+        Points::Encoded { b64: base64::engine::general_purpose::STANDARD.encode(f32_to_le_bytes(points)) }
     }
+}
+
+/// Little-endian f32s (the compact point encoding of JSON and gRPC); a trailing partial value is
+/// dropped, so callers check the length first.
+pub fn f32_from_le_bytes(bytes: &[u8]) -> Vec<f32> {
+    bytes.chunks_exact(4).map(|c| f32::from_le_bytes([c[0], c[1], c[2], c[3]])).collect()
+}
+
+/// Little-endian f32 bytes of xyz triples.
+pub fn f32_to_le_bytes(points: &[[f32; 3]]) -> Vec<u8> {
+    points.iter().flatten().flat_map(|v| v.to_le_bytes()).collect()
 }
 
 fn finite(field: &str, v: f64) -> Result<()> {

@@ -1,4 +1,4 @@
-//! The 13 keypoints shared by every part of posefuse, in Waymo's order (DESIGN.md).
+//! The 13 keypoints shared by every part of posefuse, in Waymo's order (docs/ARCHITECTURE.md, "Conventions").
 
 /// Number of keypoints.
 pub const K: usize = 13;

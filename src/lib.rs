@@ -1,8 +1,11 @@
 //! posefuse: multi-modal (camera + LiDAR) 3D pedestrian pose estimation with 2D weak supervision.
 //!
-//! Data flows one way: request ([`frame`]) → [`pipeline`] (pure) → [`runtime`] → response.
+//! Data flows one way: request ([`frame`]) → [`service`] (validation, decode, mode policy) →
+//! [`pipeline`] (pure) → [`runtime`] → response; [`server`] carries it over HTTP and gRPC and
+//! [`eval`] scores it. See docs/ARCHITECTURE.md.
 
 pub mod error;
+pub mod eval;
 pub mod frame;
 pub mod geometry;
 pub mod keypoints;
@@ -10,6 +13,7 @@ pub mod metrics;
 pub mod pipeline;
 pub mod runtime;
 pub mod server;
+pub mod service;
 pub mod sim;
 
 pub use error::{Error, Result};

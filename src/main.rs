@@ -1,6 +1,10 @@
 //! The `posefuse` command line: serve, predict, eval, simulate, health.
 
+mod cli;
+
 use clap::{Parser, Subcommand};
+use cli::args::{EvalArgs, HealthArgs, PredictArgs, ServeArgs, SimulateArgs};
+use cli::commands;
 
 // Requests allocate crops and tensors of a few hundred KB; the system allocator maps and unmaps
 // them each time (a page fault per 4 KB), mimalloc keeps them for reuse.
@@ -18,24 +22,23 @@ struct Cli {
 #[derive(Subcommand)]
 enum Command {
     /// Serve HTTP and gRPC on one port from a model bundle.
-    Serve(posefuse::server::ServeArgs),
+    Serve(ServeArgs),
     /// Run one frame JSON through the serving pipeline and print the response (no server).
-    Predict(posefuse::server::PredictArgs),
+    Predict(PredictArgs),
     /// Run the serving pipeline over simulator fixtures and print metrics per mode.
-    Eval(posefuse::server::EvalArgs),
+    Eval(EvalArgs),
     /// Render synthetic camera + LiDAR pedestrians: training shards, request fixtures, previews.
-    Simulate(posefuse::sim::SimulateArgs),
+    Simulate(SimulateArgs),
     /// Ask a running server whether it is ready (gRPC health); exit status 0 only when it is.
-    Health(posefuse::server::health::HealthArgs),
+    Health(HealthArgs),
 }
 
 fn main() -> anyhow::Result<()> {
-    let cli = Cli::parse();
-    match cli.command {
-        Command::Serve(a) => posefuse::server::serve_command(a),
-        Command::Predict(a) => posefuse::server::predict_command(a),
-        Command::Eval(a) => posefuse::server::eval_command(a),
-        Command::Simulate(a) => posefuse::sim::simulate_command(a),
-        Command::Health(a) => posefuse::server::health::health_command(a),
+    match Cli::parse().command {
+        Command::Serve(a) => commands::serve(a),
+        Command::Predict(a) => commands::predict(a),
+        Command::Eval(a) => commands::eval(a),
+        Command::Simulate(a) => commands::simulate(a),
+        Command::Health(a) => commands::health(a),
     }
 }

@@ -108,7 +108,7 @@ fn cli_predict_prints_the_response() {
     std::fs::write(&f, serde_json::to_vec(&three_mode_frame()).unwrap()).unwrap();
     let out = posefuse(&["predict", f.to_str().unwrap()]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let r: posefuse::server::api::PoseResponse = serde_json::from_slice(&out.stdout).unwrap();
+    let r: posefuse::service::api::PoseResponse = serde_json::from_slice(&out.stdout).unwrap();
     let modes: Vec<&str> = r.persons.iter().map(|p| p.mode.as_str()).collect();
     assert_eq!(modes, ["fusion", "lidar", "camera"]);
 

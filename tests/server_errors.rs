@@ -297,7 +297,7 @@ async fn shutdown_finishes_in_flight_requests() {
     drop(pause);
     let r = in_flight.await.unwrap();
     assert_eq!(r.status(), 200);
-    let pose: posefuse::server::api::PoseResponse = r.json().await.unwrap();
+    let pose: posefuse::service::api::PoseResponse = r.json().await.unwrap();
     assert_eq!(pose.persons.len(), 1);
     tokio::time::timeout(Duration::from_secs(10), task).await.unwrap().unwrap().unwrap();
 }

@@ -5,47 +5,14 @@ mod server_support;
 use std::time::Duration;
 
 use posefuse::frame::Frame;
+use posefuse::server::grpc::frame_to_proto;
 use posefuse::server::grpc::proto::{self, posefuse_client::PosefuseClient};
 use server_support::*;
 use tonic_health::pb::{health_check_response::ServingStatus, health_client::HealthClient, HealthCheckRequest};
 
 /// A JSON frame as its gRPC message: raw image bytes and little-endian f32 points.
 fn to_proto(f: &Frame, image: Option<Vec<u8>>) -> proto::PredictRequest {
-    let pts = f.points.decode().unwrap();
-    proto::PredictRequest {
-        frame_id: f.frame_id.clone().unwrap_or_default(),
-        image: image.unwrap_or_default(),
-        calibration: Some(proto::Calibration {
-            intrinsic: f.calibration.intrinsic.clone(),
-            extrinsic: f.calibration.extrinsic.clone(),
-            width: f.calibration.width,
-            height: f.calibration.height,
-        }),
-        points: pts.iter().flatten().flat_map(|v| v.to_le_bytes()).collect(),
-        persons: f
-            .persons
-            .iter()
-            .map(|p| proto::Person {
-                id: p.id.clone(),
-                box_2d: p.box_2d.map(|b| proto::Box2d {
-                    center_x: b.center_x,
-                    center_y: b.center_y,
-                    width: b.width,
-                    height: b.height,
-                }),
-                box_3d: Some(proto::Box3d {
-                    center_x: p.box_3d.center_x,
-                    center_y: p.box_3d.center_y,
-                    center_z: p.box_3d.center_z,
-                    length: p.box_3d.length,
-                    width: p.box_3d.width,
-                    height: p.box_3d.height,
-                    heading: p.box_3d.heading,
-                }),
-            })
-            .collect(),
-        mode: proto::Mode::Auto as i32,
-    }
+    frame_to_proto(f, image.unwrap_or_default()).unwrap()
 }
 
 fn three_mode_request() -> proto::PredictRequest {
@@ -72,7 +39,7 @@ async fn predict_matches_the_http_answer() {
     // Behind the camera: no pixels (NaN); LiDAR-only: no score (NaN).
     assert!(r.persons[1].keypoints.iter().all(|k| k.u.is_nan() && k.score.is_nan()));
     // Same frame over HTTP (image as base64 of the same PNG): same keypoints.
-    let http: posefuse::server::api::PoseResponse = reqwest::Client::new()
+    let http: posefuse::service::api::PoseResponse = reqwest::Client::new()
         .post(s.url("/v1/poses"))
         .json(&three_mode_frame())
         .send()

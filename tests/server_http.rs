@@ -5,7 +5,7 @@ mod server_support;
 
 use posefuse::frame::{Frame, RequestedMode};
 use posefuse::keypoints::{K, NAMES, WAYMO_TYPES};
-use posefuse::server::api::{BatchItem, EvaluateResponse, Mode, PoseResponse};
+use posefuse::service::api::{BatchItem, EvaluateResponse, Mode, PoseResponse};
 use serde_json::Value;
 use server_support::*;
 

@@ -93,3 +93,30 @@ async fn a_chain_equals_its_two_jobs_and_batches_with_others() {
     let e = rt.infer_chain(input(cam_len, 1.0), ModelKind::PointFusion, Box::new(|_: &[f32]| vec![0.0; 5])).await;
     assert!(e.unwrap_err().to_string().contains("expected"));
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn jobs_whose_callers_gave_up_are_not_computed() {
+    let rt = started_runtime().await;
+    let len = rt.bundle().io(ModelKind::PointLidar).input_len();
+    let pause = rt.pause();
+    let live = tokio::spawn({
+        let rt = rt.clone();
+        async move { rt.infer(ModelKind::PointLidar, input(len, 1.0)).await }
+    });
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    let abandoned: Vec<_> = (0..5)
+        .map(|i| {
+            let rt = rt.clone();
+            tokio::spawn(async move { rt.infer(ModelKind::PointLidar, input(len, 2.0 + i as f32)).await })
+        })
+        .collect();
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    // A deadline or a hang-up drops the caller's future, and with it the reply channel.
+    for job in &abandoned {
+        job.abort();
+    }
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    drop(pause);
+    let out = live.await.unwrap().unwrap();
+    assert_eq!(out.batch, 1, "the five abandoned jobs were run beside the live one");
+}

@@ -12,13 +12,13 @@ use posefuse::frame::{Box3d, CameraCalibration, Frame};
 use posefuse::geometry::{BoxFrame, Camera};
 use posefuse::pipeline::{crop_rgb, from_local, prepare_person, CropTransform, PipelineConfig};
 use posefuse::sim::street::Profile;
-use posefuse::sim::{simulate_command, SimulateArgs};
+use posefuse::sim::{simulate, SimulateOptions};
 
 const S: u32 = 64;
 const COUNT: usize = 7;
 
-fn args(out: &Path) -> SimulateArgs {
-    SimulateArgs {
+fn args(out: &Path) -> SimulateOptions {
+    SimulateOptions {
         count: COUNT,
         seed: 11,
         out: out.to_path_buf(),
@@ -35,7 +35,7 @@ fn run_once() -> &'static PathBuf {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
         let dir = tempfile::tempdir().unwrap().keep();
-        simulate_command(args(&dir)).unwrap();
+        simulate(args(&dir)).unwrap();
         dir
     })
 }
@@ -60,7 +60,7 @@ fn files(dir: &Path) -> BTreeMap<String, Vec<u8>> {
 fn two_runs_are_byte_identical() {
     let a = run_once();
     let b = tempfile::tempdir().unwrap();
-    simulate_command(args(b.path())).unwrap();
+    simulate(args(b.path())).unwrap();
     let (fa, fb) = (files(a), files(b.path()));
     assert!(fa.contains_key("dataset.json") && fa.contains_key("shards/shard-00000.npz"));
     assert!(fa.contains_key("requests/frame-000000.json") && fa.contains_key("preview/sheet-000.png"));
@@ -73,10 +73,10 @@ fn two_runs_are_byte_identical() {
 /// The keys of the shard table in docs/DATA.md with their dtypes and shapes.
 #[test]
 fn the_street_profile_is_recorded_reproducible_and_different() {
-    let street = |dir: &Path| SimulateArgs { profile: Profile::Street, ..args(dir) };
+    let street = |dir: &Path| SimulateOptions { profile: Profile::Street, ..args(dir) };
     let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
-    simulate_command(street(a.path())).unwrap();
-    simulate_command(street(b.path())).unwrap();
+    simulate(street(a.path())).unwrap();
+    simulate(street(b.path())).unwrap();
     let (fa, fb) = (files(a.path()), files(b.path()));
     assert_eq!(fa, fb, "street runs differ");
     let doc: serde_json::Value = serde_json::from_slice(&fa["dataset.json"]).unwrap();
@@ -278,8 +278,8 @@ fn unusable_arguments_are_refused() {
     let dir = tempfile::tempdir().unwrap();
     let mut a = args(dir.path());
     a.image_size = 30;
-    assert!(simulate_command(a).unwrap_err().to_string().contains("--image-size"));
+    assert!(simulate(a).unwrap_err().to_string().contains("--image-size"));
     let mut a = args(dir.path());
     a.count = 0;
-    assert!(simulate_command(a).is_err());
+    assert!(simulate(a).is_err());
 }

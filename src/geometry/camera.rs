@@ -168,6 +168,17 @@ impl Camera {
         Projection { uv, depth: c[0], in_front: true, in_image }
     }
 
+    /// Projects vehicle-frame points into the image; `None` for those behind the camera.
+    pub fn project_points(&self, points: &[[f64; 3]]) -> Vec<Option<[f64; 2]>> {
+        points
+            .iter()
+            .map(|&p| {
+                let pr = self.project(p);
+                pr.in_front.then_some(pr.uv)
+            })
+            .collect()
+    }
+
     /// The vehicle-frame point at pixel `uv` and depth `depth` (metres along the optical axis).
     pub fn unproject(&self, uv: [f64; 2], depth: f64) -> [f64; 3] {
         let (un, vn) = self.undistort((uv[0] - self.cu) / self.fu, (uv[1] - self.cv) / self.fv);

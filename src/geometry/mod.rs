@@ -2,6 +2,8 @@
 
 mod boxes;
 mod camera;
+mod image_boxes;
 
 pub use boxes::{box2d_contains, box2d_from_points, BoxFrame};
 pub use camera::{Camera, Projection};
+pub use image_boxes::{clip_to_image, overlaps_image, projected_box};

@@ -9,5 +9,5 @@ mod person;
 pub use accumulator::{KeypointOks, MetricsAccumulator, MetricsReport, PCK_THRESHOLDS_3D_M};
 pub use person::{
     box_scale_2d, box_scale_3d, evaluate_person, evaluate_person_partial, evaluate_projected, keypoint_oks, mpjpe,
-    oks_acc, oks_threshold, pck, pem, pem_cost, project_keypoints, PersonEval, OKS_THRESHOLD_COUNT, PEM_CLIP_M,
+    oks_acc, oks_threshold, pck, pem, pem_cost, PersonEval, OKS_THRESHOLD_COUNT, PEM_CLIP_M,
 };

@@ -152,17 +152,6 @@ pub fn evaluate_person_partial<const D: usize>(
     Ok(PersonEval { oks, per_keypoint_oks, errors })
 }
 
-/// Projects 3D keypoints (vehicle frame) into the image; `None` for those behind the camera.
-pub fn project_keypoints(camera: &Camera, keypoints_vehicle: &[[f64; 3]]) -> Vec<Option<[f64; 2]>> {
-    keypoints_vehicle
-        .iter()
-        .map(|&p| {
-            let pr = camera.project(p);
-            pr.in_front.then_some(pr.uv)
-        })
-        .collect()
-}
-
 /// OKS@2D: the 3D prediction (vehicle frame) projected with the camera, scored against the 2D
 /// ground truth with the 2D box's scale. Keypoints behind the camera count as missing.
 pub fn evaluate_projected(
@@ -176,13 +165,13 @@ pub fn evaluate_projected(
     if let Some(k) = pred_vehicle.iter().position(|p| !all_finite(p)) {
         return Err(Error::field(format!("pred[{k}]"), "is NaN or infinite"));
     }
-    evaluate_person_partial(&project_keypoints(camera, pred_vehicle), gt_px, visible, box_scale_2d(box_2d))
+    evaluate_person_partial(&camera.project_points(pred_vehicle), gt_px, visible, box_scale_2d(box_2d))
 }
 
 /// OKS/ACC: the mean over the 10 thresholds t of the fraction of persons with OKS ≥ t. `None` for
 /// no persons.
 ///
-/// Waymo's own `AveragePrecisionAtOKS` counts OKS > t; DESIGN.md and the paper's table use ≥,
+/// Waymo's own `AveragePrecisionAtOKS` counts OKS > t; docs/ARCHITECTURE.md and the paper's table use ≥,
 /// which differs only for OKS values exactly on a threshold.
 pub fn oks_acc(oks: &[f64]) -> Option<f64> {
     if oks.is_empty() {

@@ -17,4 +17,4 @@ pub use lift::{decode_heatmaps, lift, reliability};
 pub use points::{
     from_local, gather_points, input_seed, model_uv, point_input, select_indices, to_local, PersonPoints, PointInput,
 };
-pub use prepare::{keypoints_to_pixels, keypoints_to_vehicle, prepare_person, PreparedPerson};
+pub use prepare::{keypoints_to_vehicle, prepare_person, PreparedPerson};

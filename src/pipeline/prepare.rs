@@ -48,14 +48,3 @@ pub fn prepare_person(
 pub fn keypoints_to_vehicle(local: &[[f32; 3]], b: &BoxFrame, cfg: &PipelineConfig) -> Vec<[f64; 3]> {
     local.iter().map(|q| from_local(b, [q[0] as f64, q[1] as f64, q[2] as f64], cfg)).collect()
 }
-
-/// Vehicle-frame keypoints projected into the image; `None` behind the camera.
-pub fn keypoints_to_pixels(vehicle: &[[f64; 3]], camera: &Camera) -> Vec<Option<[f64; 2]>> {
-    vehicle
-        .iter()
-        .map(|p| {
-            let pr = camera.project(*p);
-            pr.in_front.then_some(pr.uv)
-        })
-        .collect()
-}

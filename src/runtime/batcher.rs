@@ -7,7 +7,7 @@
 
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicUsize, Ordering};
-use std::sync::{Arc, Condvar, Mutex};
+use std::sync::Arc;
 use std::thread::JoinHandle;
 use std::time::{Duration, Instant};
 
@@ -15,6 +15,7 @@ use crossbeam_channel::{Receiver, Sender, TrySendError};
 use tokio::sync::oneshot;
 
 use super::bundle::{Bundle, ModelKind};
+use super::gate::Gate;
 use super::models::Models;
 use crate::error::{Error, Result};
 
@@ -35,16 +36,21 @@ pub struct RuntimeConfig {
     pub queue_size: usize,
 }
 
+impl RuntimeConfig {
+    /// The defaults (those of `posefuse serve`, whose flags show them).
+    pub const DEFAULT: RuntimeConfig = RuntimeConfig {
+        ort_lib: None,
+        workers: 1,
+        intra_threads: 1,
+        max_batch: 16,
+        batch_wait: Duration::ZERO,
+        queue_size: 256,
+    };
+}
+
 impl Default for RuntimeConfig {
     fn default() -> Self {
-        RuntimeConfig {
-            ort_lib: None,
-            workers: 1,
-            intra_threads: 1,
-            max_batch: 16,
-            batch_wait: Duration::ZERO,
-            queue_size: 256,
-        }
+        RuntimeConfig::DEFAULT
     }
 }
 
@@ -91,38 +97,6 @@ struct Item {
     between: Duration,
 }
 
-/// Stops workers from taking jobs while held (load-shedding and drain tests, maintenance).
-#[derive(Default)]
-struct Gate {
-    paused: Mutex<bool>,
-    resumed: Condvar,
-}
-
-impl Gate {
-    fn wait_open(&self) {
-        let mut paused = self.paused.lock().unwrap_or_else(|p| p.into_inner());
-        while *paused {
-            paused = self.resumed.wait(paused).unwrap_or_else(|p| p.into_inner());
-        }
-    }
-
-    fn set(&self, value: bool) {
-        *self.paused.lock().unwrap_or_else(|p| p.into_inner()) = value;
-        self.resumed.notify_all();
-    }
-}
-
-/// Holds the workers paused until dropped.
-pub struct PauseGuard {
-    gate: Arc<Gate>,
-}
-
-impl Drop for PauseGuard {
-    fn drop(&mut self) {
-        self.gate.set(false);
-    }
-}
-
 /// The sessions' owner threads and the queue in front of them.
 pub struct Runtime {
     bundle: Arc<Bundle>,
@@ -134,6 +108,18 @@ pub struct Runtime {
 }
 
 impl Runtime {
+    /// Loads and validates the bundle in `model_dir` and starts a runtime on it (blocking:
+    /// builds the sessions).
+    pub fn load(model_dir: &std::path::Path, cfg: &RuntimeConfig) -> Result<Arc<Runtime>> {
+        let bundle = Arc::new(Bundle::load(model_dir)?);
+        if bundle.trained() == Some(false) {
+            tracing::warn!(bundle = %model_dir.display(), "serving an UNTRAINED bundle (tests only)");
+        }
+        let m = &bundle.manifest;
+        tracing::info!(bundle = %model_dir.display(), name = %m.name, version = %m.version, "bundle loaded");
+        Ok(Arc::new(Runtime::start(bundle, cfg)?))
+    }
+
     /// Loads ONNX Runtime, builds every worker's sessions (refusing a bundle whose ONNX files
     /// disagree with its manifest) and returns; warm-up continues on the workers ([`Runtime::is_ready`]).
     pub fn start(bundle: Arc<Bundle>, cfg: &RuntimeConfig) -> Result<Runtime> {
@@ -165,6 +151,7 @@ impl Runtime {
                         }
                     };
                     drop(built_tx);
+                    gate.wait_open();
                     if let Err(e) = warm_up(&mut models, max_batch) {
                         tracing::error!(worker = i, "warm-up failed: {e}");
                         return;
@@ -220,10 +207,11 @@ impl Runtime {
         self.max_batch
     }
 
-    /// Pauses the workers (they finish the batch in hand) until the guard is dropped.
-    pub fn pause(&self) -> PauseGuard {
-        self.gate.set(true);
-        PauseGuard { gate: self.gate.clone() }
+    /// Pauses the workers (they finish the batch in hand) until the guard is dropped: lets tests
+    /// fill the queue deterministically.
+    #[cfg(feature = "test-hooks")]
+    pub fn pause(&self) -> super::gate::PauseGuard {
+        super::gate::PauseGuard::new(&self.gate)
     }
 
     /// Queues one item for `kind` and waits for its output. Refuses at once when the queue is full.
@@ -262,7 +250,7 @@ impl Runtime {
     }
 
     fn shutdown(&mut self) {
-        self.gate.set(false);
+        self.gate.open();
         self.tx.take();
         for w in self.workers.drain(..) {
             let _ = w.join();

@@ -3,8 +3,11 @@
 mod batcher;
 pub mod bundle;
 pub mod env;
+mod gate;
 mod models;
 
-pub use batcher::{ChainStep, JobOutput, PauseGuard, Runtime, RuntimeConfig};
+pub use batcher::{ChainStep, JobOutput, Runtime, RuntimeConfig};
 pub use bundle::{Bundle, Manifest, ModelIo, ModelKind, ModelSpec};
+#[cfg(feature = "test-hooks")]
+pub use gate::{hold_warm_up, PauseGuard};
 pub use models::Models;

@@ -3,8 +3,8 @@
 use axum::http::StatusCode;
 use axum::response::{IntoResponse, Response};
 
-use super::api::{ErrorBody, ErrorDetail};
 use crate::error::Error;
+use crate::service::api::{ErrorBody, ErrorDetail};
 
 /// HTTP status of an error.
 pub fn http_status(e: &Error) -> StatusCode {
@@ -40,7 +40,7 @@ pub fn grpc_status(e: &Error) -> tonic::Status {
 
 /// The `error` object of the JSON body.
 pub fn detail(e: &Error) -> ErrorDetail {
-    ErrorDetail { code: e.code().to_string(), message: e.to_string(), field: e.field_name().map(str::to_string) }
+    ErrorDetail::from(e)
 }
 
 impl IntoResponse for Error {

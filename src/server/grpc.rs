@@ -3,16 +3,15 @@
 //! API's frame, so both transports share `Predictor::predict`.
 
 use std::pin::Pin;
-use std::time::Instant;
 
 use futures::{Stream, StreamExt};
 use tonic::{Request, Response, Status};
 
-use super::api::{Mode, PoseResponse};
 use super::errors::grpc_status;
 use super::AppState;
 use crate::error::{Error, Result};
 use crate::frame::{Box2d, Box3d, CameraCalibration, Frame, Person, Points, RequestedMode};
+use crate::service::api::{Mode, PoseResponse};
 
 /// Generated messages, server and client of `proto/posefuse.proto`.
 #[allow(clippy::all, missing_docs)]
@@ -81,7 +80,7 @@ pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<Vec<u
             format!("{} bytes is not a whole number of f32 xyz triples (12 bytes each)", r.points.len()),
         ));
     }
-    let flat: Vec<f32> = r.points.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    let flat = crate::frame::f32_from_le_bytes(&r.points);
     let mut persons = Vec::with_capacity(r.persons.len());
     for (i, p) in r.persons.into_iter().enumerate() {
         let b = p.box_3d.ok_or_else(|| Error::field(format!("persons[{i}].box_3d"), "required"))?;
@@ -119,6 +118,54 @@ pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<Vec<u
         mode: mode_from_proto(r.mode)?,
     };
     Ok((frame, Some(r.image)))
+}
+
+/// A frame as its gRPC message, with the image as encoded bytes (empty: no image): the inverse
+/// of [`frame_from_proto`], for clients, benches and tests.
+pub fn frame_to_proto(f: &Frame, image: Vec<u8>) -> Result<proto::PredictRequest> {
+    Ok(proto::PredictRequest {
+        frame_id: f.frame_id.clone().unwrap_or_default(),
+        image,
+        calibration: Some(proto::Calibration {
+            intrinsic: f.calibration.intrinsic.clone(),
+            extrinsic: f.calibration.extrinsic.clone(),
+            width: f.calibration.width,
+            height: f.calibration.height,
+        }),
+        points: crate::frame::f32_to_le_bytes(&f.points.decode()?),
+        persons: f
+            .persons
+            .iter()
+            .map(|p| proto::Person {
+                id: p.id.clone(),
+                box_2d: p.box_2d.map(|b| proto::Box2d {
+                    center_x: b.center_x,
+                    center_y: b.center_y,
+                    width: b.width,
+                    height: b.height,
+                }),
+                box_3d: Some(proto::Box3d {
+                    center_x: p.box_3d.center_x,
+                    center_y: p.box_3d.center_y,
+                    center_z: p.box_3d.center_z,
+                    length: p.box_3d.length,
+                    width: p.box_3d.width,
+                    height: p.box_3d.height,
+                    heading: p.box_3d.heading,
+                }),
+            })
+            .collect(),
+        mode: mode_request_to_proto(f.mode) as i32,
+    })
+}
+
+fn mode_request_to_proto(m: RequestedMode) -> proto::Mode {
+    match m {
+        RequestedMode::Auto => proto::Mode::Auto,
+        RequestedMode::Fusion => proto::Mode::Fusion,
+        RequestedMode::Lidar => proto::Mode::Lidar,
+        RequestedMode::Camera => proto::Mode::Camera,
+    }
 }
 
 /// A response as its gRPC message (pixels of keypoints behind the camera are NaN).
@@ -174,14 +221,8 @@ pub fn response_to_proto(r: PoseResponse) -> proto::PredictResponse {
 }
 
 async fn predict_message(state: &AppState, msg: proto::PredictRequest) -> Result<proto::PredictResponse> {
-    let t0 = Instant::now();
-    let r = match frame_from_proto(msg) {
-        Ok((frame, image)) => state.predictor.predict_within(frame, image, state.request_timeout).await,
-        Err(e) => Err(e),
-    };
-    super::metrics::frame_outcome(&r);
-    metrics::histogram!("posefuse_request_seconds").record(t0.elapsed().as_secs_f64());
-    r.map(response_to_proto)
+    let (frame, image) = frame_from_proto(msg)?;
+    state.predictor.answer(frame, image, state.request_timeout).await.map(response_to_proto)
 }
 
 fn count(method: &'static str, code: tonic::Code) {

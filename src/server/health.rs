@@ -1,5 +1,5 @@
-//! `posefuse health`: asks a running server whether it is ready to serve, through the standard
-//! gRPC health service. The container's HEALTHCHECK uses it, so the image needs no HTTP client.
+//! Asking a running server whether it is ready to serve, through the standard gRPC health service
+//! (`posefuse health`; the container's HEALTHCHECK uses it, so the image needs no HTTP client).
 
 use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
 use std::time::Duration;
@@ -8,18 +8,6 @@ use anyhow::Context;
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 use tonic_health::pb::HealthCheckRequest;
-
-/// Arguments of `posefuse health`.
-#[derive(Debug, clap::Args)]
-pub struct HealthArgs {
-    /// The server's address; a wildcard (0.0.0.0, [::]) means this host, so `serve`'s
-    /// POSEFUSE_ADDR works unchanged.
-    #[arg(long, env = "POSEFUSE_ADDR", default_value = "127.0.0.1:8080")]
-    pub addr: SocketAddr,
-    /// Seconds to wait for the answer.
-    #[arg(long, default_value_t = 3)]
-    pub timeout_s: u64,
-}
 
 /// The address to connect to for a listening address (a wildcard is reached on loopback).
 pub fn connect_addr(listen: SocketAddr) -> SocketAddr {
@@ -45,18 +33,6 @@ pub async fn check(addr: SocketAddr, timeout: Duration) -> anyhow::Result<Servin
         .await
         .map_err(|e| anyhow::anyhow!("health check at {addr} failed: {}", e.message()))?;
     Ok(ServingStatus::try_from(response.into_inner().status).unwrap_or(ServingStatus::Unknown))
-}
-
-/// Runs `posefuse health`: exit status 0 only when the server is serving.
-pub fn health_command(a: HealthArgs) -> anyhow::Result<()> {
-    let addr = connect_addr(a.addr);
-    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
-    let status = runtime.block_on(check(addr, Duration::from_secs(a.timeout_s)))?;
-    if status != ServingStatus::Serving {
-        anyhow::bail!("{addr} is not ready: {}", status.as_str_name());
-    }
-    println!("{addr}: {}", status.as_str_name());
-    Ok(())
 }
 
 #[cfg(test)]

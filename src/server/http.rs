@@ -2,7 +2,6 @@
 //! streaming, health and metrics endpoints.
 
 use std::sync::atomic::Ordering;
-use std::time::Instant;
 
 use axum::body::{Body, Bytes};
 use axum::extract::{FromRequest, MatchedPath, Request, State};
@@ -14,12 +13,11 @@ use axum::{Json, Router};
 use futures::{Stream, StreamExt};
 use serde::de::DeserializeOwned;
 
-use super::api::{BatchItem, ErrorBody, EvaluateResponse, HealthResponse, PoseResponse};
-use super::errors;
-use super::eval::EvalAccumulator;
 use super::AppState;
 use crate::error::{Error, Result};
 use crate::frame::Frame;
+use crate::service::api::{BatchItem, ErrorBody, EvaluateResponse, HealthResponse, PoseResponse};
+use crate::service::json::{from_value, parse_json};
 
 const NDJSON: &str = "application/x-ndjson";
 
@@ -84,56 +82,6 @@ fn check_json_content_type(headers: &HeaderMap) -> Result<()> {
     }
 }
 
-/// Parses JSON, naming the field of a data error by its path (`persons[0].box_3d.height`).
-pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T> {
-    let mut de = serde_json::Deserializer::from_slice(bytes);
-    let value = serde_path_to_error::deserialize(&mut de).map_err(path_error)?;
-    de.end().map_err(|e| Error::Malformed(format!("invalid JSON: {e}")))?;
-    Ok(value)
-}
-
-/// A JSON value (one batch item) into a typed value, naming the field on error.
-pub fn from_value<T: DeserializeOwned>(v: serde_json::Value) -> Result<T> {
-    serde_path_to_error::deserialize(v).map_err(path_error)
-}
-
-fn path_error(e: serde_path_to_error::Error<serde_json::Error>) -> Error {
-    let path = e.path().to_string();
-    let inner = e.into_inner();
-    match inner.classify() {
-        serde_json::error::Category::Data => {
-            let msg = inner.to_string();
-            // serde reports a missing key at its parent; name the key itself.
-            let key = msg.strip_prefix("missing field `").and_then(|rest| rest.split('`').next());
-            let parent = if path == "." || path.is_empty() { None } else { Some(path) };
-            let field = match (parent, key) {
-                (Some(p), Some(k)) => format!("{p}.{k}"),
-                (None, Some(k)) => k.to_string(),
-                (Some(p), None) => p,
-                (None, None) => "body".to_string(),
-            };
-            Error::field(field, msg)
-        }
-        _ => Error::Malformed(format!("invalid JSON: {inner}")),
-    }
-}
-
-/// Predicts one frame with the server's deadline and counts the outcome.
-async fn predict_one(state: &AppState, frame: Frame) -> Result<PoseResponse> {
-    let t0 = Instant::now();
-    let r = state.predictor.predict_within(frame, None, state.request_timeout).await;
-    super::metrics::frame_outcome(&r);
-    metrics::histogram!("posefuse_request_seconds").record(t0.elapsed().as_secs_f64());
-    r
-}
-
-fn item(index: usize, r: Result<PoseResponse>) -> BatchItem {
-    match r {
-        Ok(resp) => BatchItem { index, response: Some(resp), error: None },
-        Err(e) => BatchItem { index, response: None, error: Some(errors::detail(&e)) },
-    }
-}
-
 /// Estimate the poses of every person of one frame.
 #[utoipa::path(post, path = "/v1/poses", request_body = Frame, responses(
     (status = 200, description = "Poses", body = PoseResponse),
@@ -145,7 +93,7 @@ fn item(index: usize, r: Result<PoseResponse>) -> BatchItem {
     (status = 504, description = "Deadline passed", body = ErrorBody),
 ))]
 async fn poses(State(state): State<AppState>, ApiJson(frame): ApiJson<Frame>) -> Result<Json<PoseResponse>> {
-    predict_one(&state, frame).await.map(Json)
+    state.predictor.answer(frame, None, state.request_timeout).await.map(Json)
 }
 
 /// Several frames: a JSON array in and out, or NDJSON (`Content-Type: application/x-ndjson`)
@@ -168,18 +116,10 @@ async fn batch(State(state): State<AppState>, req: Request) -> Response {
         Ok(ApiJson(v)) => v,
         Err(e) => return e.into_response(),
     };
-    let concurrency = state.batch_concurrency;
+    let (concurrency, timeout) = (state.batch_concurrency, state.request_timeout);
+    let predictor = &state.predictor;
     let items: Vec<BatchItem> = futures::stream::iter(values.into_iter().enumerate())
-        .map(|(i, v)| {
-            let state = state.clone();
-            async move {
-                let r = match from_value::<Frame>(v) {
-                    Ok(frame) => predict_one(&state, frame).await,
-                    Err(e) => Err(e),
-                };
-                item(i, r)
-            }
-        })
+        .map(|(i, v)| predictor.answer_item(i, from_value::<Frame>(v), timeout))
         .buffered(concurrency)
         .collect()
         .await;
@@ -189,18 +129,13 @@ async fn batch(State(state): State<AppState>, req: Request) -> Response {
 fn ndjson_batch(state: AppState, body: Body) -> Response {
     let limit = state.body_limit;
     let concurrency = state.batch_concurrency;
+    let (predictor, timeout) = (state.predictor.clone(), state.request_timeout);
     let lines = ndjson_lines(body.into_data_stream(), limit);
     let out = lines
         .enumerate()
         .map(move |(i, line)| {
-            let state = state.clone();
-            async move {
-                let r = match line.and_then(|l| parse_json::<Frame>(&l)) {
-                    Ok(frame) => predict_one(&state, frame).await,
-                    Err(e) => Err(e),
-                };
-                item(i, r)
-            }
+            let predictor = predictor.clone();
+            async move { predictor.answer_item(i, line.and_then(|l| parse_json::<Frame>(&l)), timeout).await }
         })
         .buffered(concurrency)
         .map(|it| {
@@ -289,37 +224,10 @@ async fn evaluate(
     State(state): State<AppState>,
     ApiJson(values): ApiJson<Vec<serde_json::Value>>,
 ) -> Result<Json<EvaluateResponse>> {
-    let concurrency = state.batch_concurrency;
-    let results: Vec<(Option<Frame>, BatchItem)> = futures::stream::iter(values.into_iter().enumerate())
-        .map(|(i, v)| {
-            let state = state.clone();
-            async move {
-                match from_value::<Frame>(v) {
-                    Ok(frame) => {
-                        let r = predict_one(&state, frame.clone()).await;
-                        (Some(frame), item(i, r))
-                    }
-                    Err(e) => (None, item(i, Err(e))),
-                }
-            }
-        })
-        .buffered(concurrency)
-        .collect()
-        .await;
-    let mut acc = EvalAccumulator::default();
-    let mut failed = 0;
-    for (frame, it) in &results {
-        match (frame, &it.response) {
-            (Some(f), Some(resp)) => acc.add(f, resp)?,
-            _ => failed += 1,
-        }
-    }
-    Ok(Json(EvaluateResponse {
-        predictions: results.into_iter().map(|(_, it)| it).collect(),
-        metrics: acc.reports(),
-        failed_frames: failed,
-        skipped_persons: acc.skipped(),
-    }))
+    let frames = values.into_iter().map(from_value::<Frame>).collect();
+    crate::eval::evaluate_frames(&state.predictor, frames, state.batch_concurrency, state.request_timeout)
+        .await
+        .map(Json)
 }
 
 /// Liveness: the process answers.
@@ -377,35 +285,4 @@ pub fn openapi_doc() -> utoipa::openapi::OpenApi {
 #[utoipa::path(get, path = "/openapi.json", responses((status = 200, description = "OpenAPI document")))]
 async fn openapi() -> Json<utoipa::openapi::OpenApi> {
     Json(openapi_doc())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    fn field_of<T: DeserializeOwned + std::fmt::Debug>(json: &str) -> (String, String) {
-        match parse_json::<T>(json.as_bytes()) {
-            Err(e) => (e.code().to_string(), e.field_name().unwrap_or("").to_string()),
-            Ok(v) => panic!("parsed: {v:?}"),
-        }
-    }
-
-    #[test]
-    fn json_errors_name_the_field() {
-        let (code, field) = field_of::<crate::frame::Box2d>(r#"{"center_x": 1, "center_y": 2, "width": 3}"#);
-        assert_eq!((code.as_str(), field.as_str()), ("invalid_field", "height"));
-        let (_, field) = field_of::<Vec<crate::frame::Box2d>>(
-            r#"[{"center_x": 1, "center_y": 2, "width": 3, "height": 4}, {"center_x": "a"}]"#,
-        );
-        assert_eq!(field, "[1].center_x");
-        let (_, field) = field_of::<Vec<crate::frame::Box2d>>(
-            r#"[{"center_x": 1, "center_y": 2, "width": 3, "height": 4, "x": 0}]"#,
-        );
-        assert_eq!(field, "[0].x");
-        let (code, _) = field_of::<crate::frame::Box2d>("{oops");
-        assert_eq!(code, "malformed_request");
-        let (code, _) =
-            field_of::<crate::frame::Box2d>(r#"{"center_x": 1, "center_y": 2, "width": 3, "height": 4} trailing"#);
-        assert_eq!(code, "malformed_request");
-    }
 }

@@ -55,12 +55,3 @@ fn describe() {
     describe_histogram!("posefuse_decode_seconds", Unit::Seconds, "Image and point decoding time per frame");
     describe_histogram!("posefuse_request_seconds", Unit::Seconds, "Whole-frame prediction time");
 }
-
-/// Counts one frame's outcome.
-pub fn frame_outcome<T>(result: &crate::Result<T>) {
-    let outcome = match result {
-        Ok(_) => "ok",
-        Err(e) => e.code(),
-    };
-    metrics::counter!("posefuse_frames_total", "outcome" => outcome).increment(1);
-}

@@ -30,37 +30,28 @@ const BATCH_FRAMES: usize = 48;
 /// Samples shown on the preview contact sheets.
 const PREVIEW_SAMPLES: usize = 24;
 
-/// Arguments of `posefuse simulate`.
-#[derive(Debug, clap::Args)]
-pub struct SimulateArgs {
+/// What `posefuse simulate` renders (the command line's flags, as plain values).
+#[derive(Debug, Clone)]
+pub struct SimulateOptions {
     /// Number of pedestrians (prepared samples) to generate.
-    #[arg(long, default_value_t = 100)]
     pub count: usize,
     /// Random seed; the same seed and arguments give byte-identical output.
-    #[arg(long, default_value_t = 0)]
     pub seed: u64,
     /// Output directory.
-    #[arg(long)]
     pub out: std::path::PathBuf,
     /// Side S of the camera crops.
-    #[arg(long, default_value_t = 256)]
     pub image_size: u32,
     /// Write PNG contact sheets to OUT/preview.
-    #[arg(long)]
     pub preview: bool,
     /// Frames (from the first) that also get a request fixture in OUT/requests. Default: every
     /// frame when --count is at most 1000, otherwise the first 200.
-    #[arg(long)]
     pub requests: Option<usize>,
     /// Most in-box points kept per sample in `points_xyz`/`points_uv` (P in docs/DATA.md).
-    #[arg(long, default_value_t = 1024)]
     pub points_cap: usize,
     /// `clean` (tight clothing, empty hands, clean returns) or `street` (loose clothing, things in
     /// hand, mixed-pixel LiDAR returns at silhouette edges).
-    #[arg(long, value_enum, default_value_t = street::Profile::Clean)]
     pub profile: street::Profile,
     /// Worker threads (default: all cores).
-    #[arg(long)]
     pub jobs: Option<usize>,
 }
 
@@ -70,7 +61,7 @@ pub fn near_px(cfg: &PipelineConfig) -> f64 {
 }
 
 /// Runs `posefuse simulate`.
-pub fn simulate_command(args: SimulateArgs) -> anyhow::Result<()> {
+pub fn simulate(args: SimulateOptions) -> anyhow::Result<()> {
     let cfg = PipelineConfig::with_image_size(args.image_size);
     cfg.validate().map_err(|e| anyhow::anyhow!("--image-size {}: {e}", args.image_size))?;
     anyhow::ensure!(args.count > 0, "--count must be positive");
@@ -160,7 +151,7 @@ pub fn simulate_command(args: SimulateArgs) -> anyhow::Result<()> {
 #[allow(clippy::too_many_arguments)]
 fn write_dataset_json(
     out: &Path,
-    args: &SimulateArgs,
+    args: &SimulateOptions,
     cfg: &PipelineConfig,
     request_frames: usize,
     frames: usize,

@@ -63,7 +63,7 @@ pub fn points_in(b: &Box3d, n: usize) -> Vec<[f32; 3]> {
 
 /// The projection of the box corners (the test's "detector" 2D box).
 pub fn box_2d(b: &Box3d) -> Box2d {
-    posefuse::server::predict::projected_box(&camera(), b).unwrap()
+    posefuse::geometry::projected_box(&camera(), b).unwrap()
 }
 
 /// A grey image with a figure (head, torso, legs) drawn inside each 2D box; PNG, base64.
@@ -163,7 +163,7 @@ pub fn three_mode_frame() -> Frame {
 /// A running in-process server.
 pub struct TestServer {
     pub addr: SocketAddr,
-    pub predictor: posefuse::server::Predictor,
+    pub predictor: posefuse::service::Predictor,
     stop: Option<oneshot::Sender<()>>,
     pub task: Option<tokio::task::JoinHandle<posefuse::Result<()>>>,
 }

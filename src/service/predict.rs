@@ -1,7 +1,7 @@
 //! Frame → poses: the one path shared by HTTP, gRPC, `posefuse predict` and `posefuse eval`.
 //! Pre-processing is exactly the pipeline's (`prepare_person`, `crop_rgb`, `normalize`,
 //! `smoothed_features` (smoothing + sampling), `fused_points`, `decode_heatmaps`, `lift`,
-//! `keypoints_to_vehicle`, `keypoints_to_pixels`); this file only decides the mode and moves data.
+//! `keypoints_to_vehicle`, `Camera::project_points`); this file only decides the mode and moves data.
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -9,14 +9,17 @@ use std::time::{Duration, Instant};
 use base64::Engine;
 use image::RgbImage;
 
-use super::api::{KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, SkippedPerson, Timings};
+use super::api::{
+    BatchItem, ErrorDetail, KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, SkippedPerson, Timings,
+};
+use super::policy::choose_mode;
 use crate::error::{Error, Result};
-use crate::frame::{Box2d, Box3d, Frame, RequestedMode};
-use crate::geometry::{box2d_from_points, BoxFrame, Camera};
+use crate::frame::{Box2d, Frame};
+use crate::geometry::{clip_to_image, overlaps_image, projected_box, BoxFrame, Camera};
 use crate::keypoints::{K, NAMES, WAYMO_TYPES};
 use crate::pipeline::{
-    crop_rgb, decode_heatmaps, fused_points, keypoints_to_pixels, keypoints_to_vehicle, lidar_points, lift, normalize,
-    prepare_person, smoothed_features, PipelineConfig, PointInput,
+    crop_rgb, decode_heatmaps, fused_points, keypoints_to_vehicle, lidar_points, lift, normalize, prepare_person,
+    smoothed_features, PipelineConfig, PointInput,
 };
 use crate::runtime::{Bundle, ChainStep, JobOutput, ModelKind, Runtime};
 
@@ -137,16 +140,24 @@ impl Predictor {
         })
     }
 
-    /// [`Predictor::predict`] with a deadline.
-    pub async fn predict_within(
-        &self,
-        frame: Frame,
-        raw_image: Option<Vec<u8>>,
-        timeout: Duration,
-    ) -> Result<PoseResponse> {
-        match tokio::time::timeout(timeout, self.predict(frame, raw_image)).await {
+    /// [`Predictor::predict`] with a deadline, counted in the metrics: what every transport calls.
+    pub async fn answer(&self, frame: Frame, raw_image: Option<Vec<u8>>, timeout: Duration) -> Result<PoseResponse> {
+        let t0 = Instant::now();
+        let r = match tokio::time::timeout(timeout, self.predict(frame, raw_image)).await {
             Ok(r) => r,
             Err(_) => Err(Error::Timeout(timeout.as_millis() as u64)),
+        };
+        let outcome = r.as_ref().map_or_else(Error::code, |_| "ok");
+        metrics::counter!("posefuse_frames_total", "outcome" => outcome).increment(1);
+        metrics::histogram!("posefuse_request_seconds").record(t0.elapsed().as_secs_f64());
+        r
+    }
+
+    /// One item of a batch: the frame as parsed (or why it could not be), answered.
+    pub async fn answer_item(&self, index: usize, parsed: Result<Frame>, timeout: Duration) -> BatchItem {
+        match parsed {
+            Ok(frame) => BatchItem::new(index, self.answer(frame, None, timeout).await),
+            Err(e) => BatchItem::new(index, Err(e)),
         }
     }
 
@@ -193,7 +204,7 @@ impl Predictor {
             return Err(Error::Runtime(format!("{id}: keypoint {} is not finite", NAMES[k])));
         }
         let vehicle = keypoints_to_vehicle(&local, &box_frame, cfg);
-        let pixels = keypoints_to_pixels(&vehicle, camera);
+        let pixels = camera.project_points(&vehicle);
         let keypoints = (0..K)
             .map(|k| KeypointPose {
                 name: NAMES[k].to_string(),
@@ -210,28 +221,6 @@ impl Predictor {
 
 fn triples(v: &[f32]) -> Vec<[f32; 3]> {
     v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
-}
-
-/// Whether a 2D box overlaps the image at all.
-fn overlaps_image(b: &Box2d, width: u32, height: u32) -> bool {
-    let (x0, x1) = (b.center_x - b.width / 2.0, b.center_x + b.width / 2.0);
-    let (y0, y1) = (b.center_y - b.height / 2.0, b.center_y + b.height / 2.0);
-    x1 > 0.0 && y1 > 0.0 && x0 < width as f64 && y0 < height as f64
-}
-
-/// The 2D box of the projected 3D box corners, when the whole box is in front of the camera and
-/// overlaps the image.
-pub fn projected_box(camera: &Camera, b: &Box3d) -> Option<Box2d> {
-    let mut uv = Vec::with_capacity(8);
-    for c in BoxFrame::new(b).corners() {
-        let p = camera.project(c);
-        if !p.in_front {
-            return None;
-        }
-        uv.push(p.uv);
-    }
-    box2d_from_points(uv)
-        .filter(|bb| bb.width > 0.0 && bb.height > 0.0 && overlaps_image(bb, camera.width, camera.height))
 }
 
 fn decode_image(frame: &Frame, raw_image: Option<Vec<u8>>) -> Result<ImageState> {
@@ -283,15 +272,6 @@ fn check_box_size(b: &Box2d, field: &str, width: u32, height: u32) -> Result<()>
     Ok(())
 }
 
-/// The part of a box inside the image (for derived boxes of persons close to the camera).
-fn clip_to_image(b: Box2d, width: u32, height: u32) -> Box2d {
-    let x0 = (b.center_x - b.width / 2.0).max(0.0);
-    let x1 = (b.center_x + b.width / 2.0).min(width as f64);
-    let y0 = (b.center_y - b.height / 2.0).max(0.0);
-    let y1 = (b.center_y + b.height / 2.0).min(height as f64);
-    Box2d { center_x: (x0 + x1) / 2.0, center_y: (y0 + y1) / 2.0, width: x1 - x0, height: y1 - y0 }
-}
-
 fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -> Result<FramePlan> {
     frame.validate()?;
     if frame.persons.len() > MAX_PERSONS {
@@ -313,7 +293,7 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
     let mut skipped = Vec::new();
     let mut skip = |index: usize, id: &str, e: Error| {
         metrics::counter!("posefuse_persons_skipped_total").increment(1);
-        skipped.push(SkippedPerson { index, id: id.to_string(), error: super::errors::detail(&e) });
+        skipped.push(SkippedPerson { index, id: id.to_string(), error: ErrorDetail::from(&e) });
     };
     for (i, person) in frame.persons.iter().enumerate() {
         let field = format!("persons[{i}]");
@@ -353,23 +333,7 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
             )),
             (ImageState::Decoded(_), Some(_)) => None,
         };
-        let min = cfg.min_points as usize;
-        let (mode, reason) = match (frame.mode, &camera_problem) {
-            (RequestedMode::Auto, None) if num_points >= min => {
-                (Mode::Fusion, format!("camera and LiDAR usable ({num_points} points in the box)"))
-            }
-            (RequestedMode::Auto, None) => (
-                Mode::Camera,
-                format!("only {num_points} points in the box (fewer than {min}): camera keypoints lifted onto them"),
-            ),
-            (RequestedMode::Auto, Some((_, why))) => (Mode::Lidar, format!("camera unusable: {why}")),
-            (RequestedMode::Lidar, _) => (Mode::Lidar, "requested".into()),
-            (RequestedMode::Fusion | RequestedMode::Camera, Some((f, why))) => {
-                return Err(Error::field(f.clone(), format!("mode {:?} needs the camera: {why}", frame.mode)));
-            }
-            (RequestedMode::Fusion, None) => (Mode::Fusion, "requested".into()),
-            (RequestedMode::Camera, None) => (Mode::Camera, "requested".into()),
-        };
+        let (mode, reason) = choose_mode(frame.mode, camera_problem, num_points, cfg.min_points as usize)?;
         if mode == Mode::Camera && !input.uv.iter().any(|uv| uv[0].is_finite() && uv[1].is_finite()) {
             let why = "camera-only lifting needs points in front of the camera; none of the box's points are";
             skip(i, &person.id, Error::InsufficientData { field: format!("{field}.box_3d"), message: why.into() });
@@ -399,60 +363,13 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::frame::CameraCalibration;
-
-    /// A forward-looking camera at the origin: camera frame = vehicle frame.
-    fn camera() -> Camera {
-        let mut ext = vec![0.0; 16];
-        for i in 0..4 {
-            ext[i * 5] = 1.0;
-        }
-        Camera::from_calibration(&CameraCalibration {
-            intrinsic: vec![100.0, 100.0, 50.0, 40.0, 0.0, 0.0, 0.0, 0.0, 0.0],
-            extrinsic: ext,
-            width: 100,
-            height: 80,
-        })
-        .unwrap()
-    }
-
-    fn b3(x: f64, y: f64) -> Box3d {
-        Box3d { center_x: x, center_y: y, center_z: 0.0, length: 1.0, width: 1.0, height: 2.0, heading: 0.0 }
-    }
 
     #[test]
-    fn projected_box_of_a_box_straight_ahead() {
-        // Corners at x = 9.5 (near face) project to u = 50 ± 100·0.5/9.5, v = 40 ± 100·1/9.5.
-        let b = projected_box(&camera(), &b3(10.0, 0.0)).unwrap();
-        assert!((b.center_x - 50.0).abs() < 1e-9 && (b.center_y - 40.0).abs() < 1e-9);
-        assert!((b.width - 100.0 / 9.5).abs() < 1e-9 && (b.height - 200.0 / 9.5).abs() < 1e-9);
-    }
-
-    #[test]
-    fn boxes_behind_or_beside_the_camera_have_no_projection() {
-        assert!(projected_box(&camera(), &b3(-10.0, 0.0)).is_none());
-        // Far to the left: u = 50 - 100·20/10 < 0 for every corner.
-        assert!(projected_box(&camera(), &b3(10.0, 20.0)).is_none());
-        // Straddling the image plane (a corner behind the camera).
-        assert!(projected_box(&camera(), &b3(0.2, 0.0)).is_none());
-    }
-
-    #[test]
-    fn oversized_boxes_are_refused_or_clipped() {
+    fn oversized_boxes_are_refused() {
         let b = Box2d { center_x: 50.0, center_y: 40.0, width: 201.0, height: 10.0 };
         let e = check_box_size(&b, "persons[0].box_2d", 100, 80).unwrap_err();
         assert_eq!(e.field_name(), Some("persons[0].box_2d"));
         assert!(check_box_size(&Box2d { width: 200.0, ..b }, "f", 100, 80).is_ok());
-        let c = clip_to_image(Box2d { center_x: 90.0, center_y: 40.0, width: 40.0, height: 200.0 }, 100, 80);
-        assert_eq!((c.center_x, c.center_y, c.width, c.height), (85.0, 40.0, 30.0, 80.0));
-    }
-
-    #[test]
-    fn overlap_with_the_image() {
-        let b = |cx, cy| Box2d { center_x: cx, center_y: cy, width: 10.0, height: 10.0 };
-        assert!(overlaps_image(&b(50.0, 40.0), 100, 80));
-        assert!(overlaps_image(&b(-4.0, 40.0), 100, 80));
-        assert!(!overlaps_image(&b(-5.0, 40.0), 100, 80));
-        assert!(!overlaps_image(&b(50.0, 85.0), 100, 80));
+        assert!(check_box_size(&Box2d { height: 161.0, ..b }, "f", 100, 80).is_err());
     }
 }

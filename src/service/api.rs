@@ -5,6 +5,7 @@ use std::collections::BTreeMap;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
+use crate::error::{Error, Result};
 use crate::frame::Box2d;
 use crate::metrics::MetricsReport;
 
@@ -134,6 +135,12 @@ pub struct ErrorDetail {
     pub field: Option<String>,
 }
 
+impl From<&Error> for ErrorDetail {
+    fn from(e: &Error) -> ErrorDetail {
+        ErrorDetail { code: e.code().to_string(), message: e.to_string(), field: e.field_name().map(str::to_string) }
+    }
+}
+
 /// One result of a batch: a response or an error, never both.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
 pub struct BatchItem {
@@ -143,6 +150,16 @@ pub struct BatchItem {
     pub response: Option<PoseResponse>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub error: Option<ErrorDetail>,
+}
+
+impl BatchItem {
+    /// The item at `index` for a frame's outcome.
+    pub fn new(index: usize, r: Result<PoseResponse>) -> BatchItem {
+        match r {
+            Ok(resp) => BatchItem { index, response: Some(resp), error: None },
+            Err(e) => BatchItem { index, response: None, error: Some(ErrorDetail::from(&e)) },
+        }
+    }
 }
 
 /// Predictions and metrics over frames with ground truth.

@@ -1,16 +1,22 @@
-//! Scoring predictions against ground truth with `crate::metrics` (the same accumulator the
-//! trainer's numbers are checked against), overall and per mode; and `posefuse eval`.
+//! Evaluation: frames with ground truth answered by the service and scored with `crate::metrics`
+//! (the same accumulator the trainer's numbers are checked against), overall and per mode. One
+//! path, [`evaluate_frames`], serves both `POST /v1/evaluate` and `posefuse eval`; reading a
+//! data set's request fixtures lives here too.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
+use std::time::Duration;
 
+use futures::StreamExt;
 use serde::{Deserialize, Serialize};
 
-use super::api::{Mode, PoseResponse};
 use crate::error::{Error, Result};
-use crate::frame::Frame;
+use crate::frame::{Frame, RequestedMode};
 use crate::geometry::Camera;
 use crate::metrics::{MetricsAccumulator, MetricsReport};
+use crate::service::api::{BatchItem, EvaluateResponse, Mode, ModelRef, PoseResponse};
+use crate::service::json::{from_value, parse_json};
+use crate::service::Predictor;
 
 /// Metrics over all persons and per mode that ran.
 #[derive(Debug, Clone, Default)]
@@ -72,9 +78,9 @@ pub struct EvalReport {
     /// The data directory.
     pub data: PathBuf,
     /// Bundle name and version.
-    pub model: super::api::ModelRef,
+    pub model: ModelRef,
     /// The forced mode, if any.
-    pub mode: Option<crate::frame::RequestedMode>,
+    pub mode: Option<RequestedMode>,
     pub frames: usize,
     pub failed_frames: usize,
     /// Persons with ground truth that got no pose (no LiDAR point in the box, ...); not scored.
@@ -124,51 +130,89 @@ pub fn load_fixtures(data: &Path) -> Result<Vec<(String, Frame)>> {
     for f in files {
         let name = f.file_name().map_or_else(String::new, |n| n.to_string_lossy().into_owned());
         let bytes = std::fs::read(&f).map_err(|e| Error::Io(format!("{}: {e}", f.display())))?;
-        let value: serde_json::Value =
-            super::http::parse_json(&bytes).map_err(|e| Error::Io(format!("{}: {e}", f.display())))?;
+        let value: serde_json::Value = parse_json(&bytes).map_err(|e| Error::Io(format!("{}: {e}", f.display())))?;
         let items = match value {
             serde_json::Value::Array(v) => v,
             other => vec![other],
         };
         let many = items.len() > 1;
         for (i, v) in items.into_iter().enumerate() {
-            let frame: Frame = super::http::from_value(v).map_err(|e| Error::Io(format!("{}: {e}", f.display())))?;
+            let frame: Frame = from_value(v).map_err(|e| Error::Io(format!("{}: {e}", f.display())))?;
             frames.push((if many { format!("{name}[{i}]") } else { name.clone() }, frame));
         }
     }
     Ok(frames)
 }
 
-/// Predicts every fixture (sequentially, like the trainer's evaluation) and scores it.
+/// Answers every frame (`concurrency` at a time, results in input order) and scores those that
+/// carry ground truth. A frame that failed to parse or to predict is an error item, not scored.
 pub async fn evaluate_frames(
-    predictor: &super::Predictor,
-    data: &Path,
-    mode: Option<crate::frame::RequestedMode>,
-    frames: Vec<(String, Frame)>,
-) -> Result<EvalReport> {
-    let mut acc = EvalAccumulator::default();
-    let (mut failed, mut failures) = (0, Vec::new());
-    let n = frames.len();
-    for (name, frame) in frames {
-        match predictor.predict(frame.clone(), None).await {
-            Ok(resp) => acc.add(&frame, &resp)?,
-            Err(e) => {
-                failed += 1;
-                if failures.len() < 10 {
-                    failures.push(format!("{name}: {e}"));
+    predictor: &Predictor,
+    frames: Vec<Result<Frame>>,
+    concurrency: usize,
+    timeout: Duration,
+) -> Result<EvaluateResponse> {
+    let results: Vec<(Option<Frame>, BatchItem)> = futures::stream::iter(frames.into_iter().enumerate())
+        .map(|(i, parsed)| async move {
+            match parsed {
+                Ok(frame) => {
+                    let r = predictor.answer(frame.clone(), None, timeout).await;
+                    (Some(frame), BatchItem::new(i, r))
                 }
+                Err(e) => (None, BatchItem::new(i, Err(e))),
             }
+        })
+        .buffered(concurrency.max(1))
+        .collect()
+        .await;
+    let mut acc = EvalAccumulator::default();
+    let mut failed = 0;
+    for (frame, it) in &results {
+        match (frame, &it.response) {
+            (Some(f), Some(resp)) => acc.add(f, resp)?,
+            _ => failed += 1,
         }
     }
+    Ok(EvaluateResponse {
+        predictions: results.into_iter().map(|(_, it)| it).collect(),
+        metrics: acc.reports(),
+        failed_frames: failed,
+        skipped_persons: acc.skipped(),
+    })
+}
+
+/// The `posefuse eval` report of a data set's fixtures (`mode`, when given, forced on every frame).
+pub async fn evaluate_fixtures(
+    predictor: &Predictor,
+    data: &Path,
+    mode: Option<RequestedMode>,
+    concurrency: usize,
+    timeout: Duration,
+) -> Result<EvalReport> {
+    let mut fixtures = load_fixtures(data)?;
+    if let Some(m) = mode {
+        for (_, f) in &mut fixtures {
+            f.mode = m;
+        }
+    }
+    let (names, frames): (Vec<String>, Vec<Frame>) = fixtures.into_iter().unzip();
+    let n = frames.len();
+    let ev = evaluate_frames(predictor, frames.into_iter().map(Ok).collect(), concurrency, timeout).await?;
+    let failures = ev
+        .predictions
+        .iter()
+        .filter_map(|it| it.error.as_ref().map(|e| format!("{}: {}", names[it.index], e.message)))
+        .take(10)
+        .collect();
     let m = &predictor.bundle().manifest;
     Ok(EvalReport {
         data: data.to_path_buf(),
-        model: super::api::ModelRef { name: m.name.clone(), version: m.version.clone() },
+        model: ModelRef { name: m.name.clone(), version: m.version.clone() },
         mode,
         frames: n,
-        failed_frames: failed,
-        skipped_persons: acc.skipped(),
+        failed_frames: ev.failed_frames,
+        skipped_persons: ev.skipped_persons,
         failures,
-        metrics: acc.reports(),
+        metrics: ev.metrics,
     })
 }

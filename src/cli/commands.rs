@@ -1,0 +1,100 @@
+//! What each subcommand does: the edges (files, logging, the process's runtime) around the
+//! library's server, service, evaluation and simulator.
+
+use std::time::Duration;
+
+use posefuse::frame::Frame;
+use posefuse::runtime::Runtime;
+use posefuse::service::json::parse_json;
+use posefuse::service::Predictor;
+use tonic_health::pb::health_check_response::ServingStatus;
+
+use super::args::{EvalArgs, HealthArgs, PredictArgs, RuntimeArgs, ServeArgs, SimulateArgs};
+
+fn init_tracing(json: bool) {
+    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
+        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,ort=warn"));
+    // Colour codes only for a person at a terminal, not in a container's or a collector's log.
+    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
+    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi);
+    let _ = if json { builder.json().try_init() } else { builder.try_init() };
+}
+
+fn tokio_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+    Ok(tokio::runtime::Builder::new_multi_thread().enable_all().build()?)
+}
+
+/// `posefuse serve`.
+pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
+    init_tracing(a.log_json);
+    let config = a.server_config();
+    tracing::info!(addr = %a.addr, ?config, "effective configuration");
+    tokio_runtime()?.block_on(async move {
+        let listener = tokio::net::TcpListener::bind(a.addr)
+            .await
+            .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", a.addr))?;
+        posefuse::server::run(config, listener, posefuse::server::shutdown_signal()).await?;
+        Ok(())
+    })
+}
+
+/// Starts the runtime for a CLI command and waits for warm-up.
+fn cli_predictor(a: &RuntimeArgs) -> anyhow::Result<Predictor> {
+    let config = a.runtime_config();
+    tracing::info!(model_dir = %a.model_dir.display(), ?config, "effective configuration");
+    let runtime = Runtime::load(&a.model_dir, &config)?;
+    if !runtime.wait_ready(Duration::from_secs(300)) {
+        anyhow::bail!("the models did not warm up (see the log)");
+    }
+    Ok(Predictor::new(runtime))
+}
+
+/// A deadline no CLI frame should reach; the server's is a flag.
+const CLI_FRAME_TIMEOUT: Duration = Duration::from_secs(600);
+
+/// `posefuse predict`.
+pub fn predict(a: PredictArgs) -> anyhow::Result<()> {
+    init_tracing(false);
+    let bytes = std::fs::read(&a.frame).map_err(|e| anyhow::anyhow!("{}: {e}", a.frame.display()))?;
+    let frame: Frame = parse_json(&bytes).map_err(|e| anyhow::anyhow!("{}: {e}", a.frame.display()))?;
+    let predictor = cli_predictor(&a.runtime)?;
+    let resp = tokio_runtime()?.block_on(predictor.answer(frame, None, CLI_FRAME_TIMEOUT))?;
+    println!("{}", serde_json::to_string_pretty(&resp)?);
+    Ok(())
+}
+
+/// `posefuse eval`.
+pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
+    init_tracing(false);
+    let predictor = cli_predictor(&a.runtime)?;
+    let report = tokio_runtime()?.block_on(posefuse::eval::evaluate_fixtures(
+        &predictor,
+        &a.data,
+        a.mode,
+        a.concurrency,
+        CLI_FRAME_TIMEOUT,
+    ))?;
+    if a.json {
+        println!("{}", serde_json::to_string_pretty(&report)?);
+    } else {
+        print!("{}", report.text());
+    }
+    Ok(())
+}
+
+/// `posefuse health`: exit status 0 only when the server is serving.
+pub fn health(a: HealthArgs) -> anyhow::Result<()> {
+    let addr = posefuse::server::health::connect_addr(a.addr);
+    let runtime = tokio::runtime::Builder::new_current_thread().enable_all().build()?;
+    let status = runtime.block_on(posefuse::server::health::check(addr, Duration::from_secs(a.timeout_s)))?;
+    if status != ServingStatus::Serving {
+        anyhow::bail!("{addr} is not ready: {}", status.as_str_name());
+    }
+    println!("{addr}: {}", status.as_str_name());
+    Ok(())
+}
+
+/// `posefuse simulate`.
+pub fn simulate(a: SimulateArgs) -> anyhow::Result<()> {
+    posefuse::sim::simulate(a.into())
+}

@@ -1,0 +1,4 @@
+//! The `posefuse` command line: its flags ([`args`]) and what each subcommand runs ([`commands`]).
+
+pub mod args;
+pub mod commands;

@@ -1,0 +1,12 @@
+//! The transport-free service: one frame in, poses out. It validates the frame, decodes the image
+//! and points, derives missing 2D boxes, chooses each person's mode (or skips the person), runs
+//! the pure [`crate::pipeline`] and the [`crate::runtime`], and assembles the response with its
+//! timings. HTTP, gRPC, the CLI and the evaluation all call [`Predictor`]; none of them decides
+//! anything about a pose. See docs/ARCHITECTURE.md.
+
+pub mod api;
+pub mod json;
+pub mod policy;
+mod predict;
+
+pub use predict::{Predictor, MAX_PERSONS};
