@@ -31,7 +31,8 @@ async fn a_server_warming_up_is_alive_but_not_ready() {
     let ready = c.get(url("/readyz")).send().await.unwrap();
     assert_eq!(ready.status(), 503);
     assert_eq!(ready.json::<Value>().await.unwrap()["status"], "warming_up");
-    let mut health = HealthClient::connect(url("")).await.unwrap();
+    let channel = tonic::transport::Endpoint::from_shared(url("")).unwrap().connect().await.unwrap();
+    let mut health = HealthClient::new(channel);
     let status = health.check(HealthCheckRequest { service: String::new() }).await.unwrap().into_inner().status;
     assert_eq!(status, ServingStatus::NotServing as i32);
     let r = c.post(url("/v1/poses")).json(&fusion_frame()).send().await.unwrap();
