@@ -209,13 +209,7 @@ async fn bodies_over_the_limit_get_413() {
     small.image = None;
     small.points = Points::encode(&points_in(&small.persons[0].box_3d, 50));
     let body = format!("{}\n{}\n", String::from_utf8(big).unwrap(), serde_json::to_string(&small).unwrap());
-    let r = c
-        .post(s.url("/v1/poses:batch"))
-        .header("content-type", "application/x-ndjson")
-        .body(body)
-        .send()
-        .await
-        .unwrap();
+    let r = s.post_ndjson(body).await;
     let lines: Vec<Value> = r.text().await.unwrap().lines().map(|l| serde_json::from_str(l).unwrap()).collect();
     assert_eq!(lines.len(), 2);
     assert_eq!(lines[0]["error"]["code"], "payload_too_large");

@@ -132,13 +132,7 @@ async fn batch_ndjson_streams_results_in_order() {
     }
     body.push_str("{not json\n\n");
     body.push_str(&serde_json::to_string(&lidar).unwrap());
-    let resp = reqwest::Client::new()
-        .post(s.url("/v1/poses:batch"))
-        .header("content-type", "application/x-ndjson")
-        .body(body)
-        .send()
-        .await
-        .unwrap();
+    let resp = s.post_ndjson(body).await;
     assert_eq!(resp.status(), 200);
     assert_eq!(resp.headers()["content-type"], "application/x-ndjson");
     let text = resp.text().await.unwrap();

@@ -192,6 +192,19 @@ impl TestServer {
     }
 }
 
+impl TestServer {
+    /// POSTs NDJSON lines to the batch endpoint.
+    pub async fn post_ndjson(&self, body: String) -> reqwest::Response {
+        reqwest::Client::new()
+            .post(self.url("/v1/poses:batch"))
+            .header("content-type", "application/x-ndjson")
+            .body(body)
+            .send()
+            .await
+            .unwrap()
+    }
+}
+
 pub fn config() -> ServerConfig {
     ServerConfig::new(model_dir())
 }
