@@ -52,6 +52,10 @@ async fn predict_matches_the_http_answer() {
         for (a, b) in g.keypoints.iter().zip(&h.keypoints) {
             assert!((a.x - b.xyz[0]).abs() < 1e-9 && (a.y - b.xyz[1]).abs() < 1e-9 && (a.z - b.xyz[2]).abs() < 1e-9);
         }
+        match (&g.facing, &h.facing) {
+            (Some(a), Some(b)) => assert!((a.yaw - b.yaw).abs() < 1e-9 && (a.confidence - b.confidence).abs() < 1e-9),
+            (a, b) => assert!(a.is_none() && b.is_none(), "{a:?} vs {b:?}"),
+        }
     }
     s.shutdown().await.unwrap();
 }

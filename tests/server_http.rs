@@ -23,6 +23,16 @@ fn assert_pose_is_sane(r: &PoseResponse, id: &str, mode: Mode) {
         assert!(kp.xyz.iter().all(|v| v.is_finite()));
         assert_eq!(kp.score.is_some(), mode != Mode::Lidar);
     }
+    // The facing is the vehicle-frame keypoints' (not the box frame's, turned by the heading).
+    let xyz: Vec<[f64; 3]> = p.keypoints.iter().map(|k| k.xyz).collect();
+    match (p.facing, posefuse::pipeline::facing(&xyz)) {
+        (Some(a), Some(b)) => {
+            assert!((a.yaw - b.yaw).abs() < 1e-9 && (a.confidence - b.confidence).abs() < 1e-9, "{id}: {a:?} {b:?}")
+        }
+        (a, b) => assert!(a.is_none() && b.is_none(), "{id}: {a:?} vs {b:?}"),
+    }
+    // Camera-only lifting onto a handful of points may put both shoulders on one point.
+    assert!(p.facing.is_some() || mode == Mode::Camera, "{id}: no facing");
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -199,6 +199,7 @@ pub fn response_to_proto(r: PoseResponse) -> proto::PredictResponse {
                         }
                     })
                     .collect(),
+                facing: p.facing.map(|f| proto::Facing { yaw: f.yaw, confidence: f.confidence }),
             })
             .collect(),
         skipped: r

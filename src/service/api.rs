@@ -8,6 +8,7 @@ use utoipa::ToSchema;
 use crate::error::{Error, Result};
 use crate::frame::Box2d;
 use crate::metrics::MetricsReport;
+pub use crate::pipeline::Facing;
 
 /// The model path that produced a person's pose.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize, ToSchema)]
@@ -74,6 +75,10 @@ pub struct PersonPose {
     pub box_2d: Option<Box2d>,
     /// The 13 keypoints in the project's order.
     pub keypoints: Vec<KeypointPose>,
+    /// Which way the body faces in the vehicle frame, from the predicted shoulders and hips;
+    /// absent when they give no direction.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub facing: Option<Facing>,
 }
 
 /// A requested person that got no pose, and why.

@@ -18,8 +18,8 @@ use crate::frame::{Box2d, Frame};
 use crate::geometry::{clip_to_image, overlaps_image, projected_box, BoxFrame, Camera};
 use crate::keypoints::{K, NAMES, WAYMO_TYPES};
 use crate::pipeline::{
-    crop_rgb, decode_heatmaps, fused_points, keypoints_to_vehicle, lidar_points, lift, normalize, prepare_person,
-    smoothed_features, PipelineConfig, PointInput,
+    crop_rgb, decode_heatmaps, facing, fused_points, keypoints_to_vehicle, lidar_points, lift, normalize,
+    prepare_person, smoothed_features, PipelineConfig, PointInput,
 };
 use crate::runtime::{Bundle, ChainStep, JobOutput, ModelKind, Runtime};
 
@@ -214,7 +214,8 @@ impl Predictor {
                 score: scores.as_ref().map(|s| s[k]),
             })
             .collect();
-        let pose = PersonPose { id, mode, mode_reason: reason, num_points, box_2d, keypoints };
+        let facing = facing(&vehicle);
+        let pose = PersonPose { id, mode, mode_reason: reason, num_points, box_2d, keypoints, facing };
         Ok((pose, times))
     }
 }
