@@ -156,3 +156,40 @@ fn cli_eval_reports_metrics_per_mode() {
         assert!(text.contains(h), "{h} missing:\n{text}");
     }
 }
+
+#[test]
+fn cli_eval_with_wrong_headings_reports_the_swaps_they_cause() {
+    let d = tempfile::tempdir().unwrap();
+    let data = d.path().join("sim");
+    let data = data.to_str().unwrap();
+    let s = bundle_image_size().to_string();
+    let out = posefuse(&["simulate", "--count", "12", "--seed", "5", "--image-size", &s, "--out", data]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let eval = |extra: &[&str]| -> Value {
+        let out = posefuse(&[&["eval", "--data", data, "--json", "--mode", "lidar"], extra].concat());
+        assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+        serde_json::from_slice(&out.stdout).unwrap()
+    };
+    let exact = eval(&[]);
+    let turned = eval(&["--heading-noise", "180"]);
+    assert!(exact.get("heading_noise").is_none());
+    assert_eq!(turned["heading_noise"], "180");
+    let (e, t) = (&exact["diagnostics"]["lidar"], &turned["diagnostics"]["lidar"]);
+    assert!(e["swap_judged"].as_u64().unwrap() >= 8, "{e}");
+    // The default bundle reads the facing from the box heading (docs/BUNDLE.md): turned round,
+    // it reads persons backwards.
+    let rate = |v: &Value| v["left_right_swap_rate"].as_f64().unwrap();
+    assert!(rate(e) <= 0.25 && rate(t) >= 0.75, "swap rate exact {} vs turned {}", rate(e), rate(t));
+    let median = |v: &Value| v["facing_error_median_deg"].as_f64().unwrap();
+    assert!(median(e) < 30.0 && median(t) > 120.0, "facing error exact {} vs turned {}", median(e), median(t));
+    // Same seed, same errors, same metrics.
+    assert_eq!(
+        eval(&["--heading-noise", "uniform", "--noise-seed", "3"])["metrics"],
+        eval(&["--heading-noise", "uniform", "--noise-seed", "3"])["metrics"]
+    );
+}
+
+fn bundle_image_size() -> u64 {
+    let m: Value = serde_json::from_slice(&std::fs::read(model_dir().join("manifest.json")).unwrap()).unwrap();
+    m["preprocessing"]["image_size"].as_u64().unwrap()
+}

@@ -3,9 +3,10 @@
 
 mod server_support;
 
+use posefuse::eval::EvaluateResponse;
 use posefuse::frame::{Frame, RequestedMode};
 use posefuse::keypoints::{K, NAMES, WAYMO_TYPES};
-use posefuse::service::api::{BatchItem, EvaluateResponse, Mode, PoseResponse};
+use posefuse::service::api::{BatchItem, Mode, PoseResponse};
 use serde_json::Value;
 use server_support::*;
 

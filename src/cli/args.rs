@@ -5,6 +5,7 @@ use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::time::Duration;
 
+use posefuse::eval::HeadingNoise;
 use posefuse::frame::RequestedMode;
 use posefuse::runtime::RuntimeConfig;
 use posefuse::server::ServerConfig;
@@ -110,6 +111,13 @@ pub struct EvalArgs {
     /// Frames predicted concurrently (results do not depend on it).
     #[arg(long, default_value_t = ServerConfig::BATCH_CONCURRENCY)]
     pub concurrency: usize,
+    /// Turn every request box's heading by this many degrees (random sign per person), or by a
+    /// uniformly random angle with `uniform`: how much a bundle relies on the detector's heading.
+    #[arg(long)]
+    pub heading_noise: Option<HeadingNoise>,
+    /// Seed of the heading errors.
+    #[arg(long, default_value_t = 0)]
+    pub noise_seed: u64,
     /// Print a machine-readable JSON report instead of tables.
     #[arg(long, env = "POSEFUSE_EVAL_JSON")]
     pub json: bool,

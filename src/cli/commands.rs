@@ -3,6 +3,7 @@
 
 use std::time::Duration;
 
+use posefuse::eval::FixtureRun;
 use posefuse::frame::Frame;
 use posefuse::runtime::Runtime;
 use posefuse::service::json::parse_json;
@@ -67,13 +68,14 @@ pub fn predict(a: PredictArgs) -> anyhow::Result<()> {
 pub fn eval(a: EvalArgs) -> anyhow::Result<()> {
     init_tracing(false);
     let predictor = cli_predictor(&a.runtime)?;
-    let report = tokio_runtime()?.block_on(posefuse::eval::evaluate_fixtures(
-        &predictor,
-        &a.data,
-        a.mode,
-        a.concurrency,
-        CLI_FRAME_TIMEOUT,
-    ))?;
+    let run = FixtureRun {
+        mode: a.mode,
+        heading_noise: a.heading_noise,
+        noise_seed: a.noise_seed,
+        concurrency: a.concurrency,
+        timeout: CLI_FRAME_TIMEOUT,
+    };
+    let report = tokio_runtime()?.block_on(posefuse::eval::evaluate_fixtures(&predictor, &a.data, &run))?;
     if a.json {
         println!("{}", serde_json::to_string_pretty(&report)?);
     } else {

@@ -9,20 +9,45 @@ use std::time::Duration;
 
 use futures::StreamExt;
 use serde::{Deserialize, Serialize};
+use utoipa::ToSchema;
 
 use crate::error::{Error, Result};
 use crate::frame::{Frame, RequestedMode};
 use crate::geometry::Camera;
 use crate::metrics::{MetricsAccumulator, MetricsReport};
-use crate::service::api::{BatchItem, EvaluateResponse, Mode, ModelRef, PoseResponse};
+use crate::service::api::{BatchItem, Mode, ModelRef, PoseResponse};
 use crate::service::json::{from_value, parse_json};
 use crate::service::Predictor;
+
+mod diagnostics;
+mod heading_noise;
+
+pub use diagnostics::{left_right_swapped, Diagnostics, DiagnosticsReport};
+pub use heading_noise::{perturb_headings, HeadingNoise};
+
+/// Predictions and metrics over frames with ground truth.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
+pub struct EvaluateResponse {
+    /// Per-frame results, in request order.
+    pub predictions: Vec<BatchItem>,
+    /// Metrics over all persons with ground truth (`all`) and per mode that ran.
+    pub metrics: BTreeMap<String, MetricsReport>,
+    /// Left/right swap rate and facing error (not Waymo metrics), `all` and per mode.
+    #[serde(default)]
+    pub diagnostics: BTreeMap<String, DiagnosticsReport>,
+    /// Frames that failed (their persons are not scored).
+    pub failed_frames: usize,
+    /// Persons with ground truth that got no pose (listed in their frame's `skipped`; not scored).
+    pub skipped_persons: usize,
+}
 
 /// Metrics over all persons and per mode that ran.
 #[derive(Debug, Clone, Default)]
 pub struct EvalAccumulator {
     all: MetricsAccumulator,
     by_mode: BTreeMap<Mode, MetricsAccumulator>,
+    diagnostics: Diagnostics,
+    diagnostics_by_mode: BTreeMap<Mode, Diagnostics>,
     skipped: usize,
 }
 
@@ -46,6 +71,10 @@ impl EvalAccumulator {
             let mut one = MetricsAccumulator::new();
             if let Some(k3) = &gt.keypoints_3d {
                 one.add_3d(&pred, &k3.xyz, &k3.visible, &person.box_3d)?;
+                let mut d = Diagnostics::default();
+                d.add(&pred, &k3.xyz, &k3.visible);
+                self.diagnostics.merge(&d);
+                self.diagnostics_by_mode.entry(pose.mode).or_default().merge(&d);
             }
             if let (Some(k2), Some(b2)) = (&gt.keypoints_2d, person.box_2d.or(pose.box_2d)) {
                 one.add_projected(&camera, &pred, &k2.uv, &k2.visible, &b2)?;
@@ -59,6 +88,16 @@ impl EvalAccumulator {
     /// Persons with ground truth that the server skipped (not scored).
     pub fn skipped(&self) -> usize {
         self.skipped
+    }
+
+    /// Facing and left/right diagnostics: `all` plus one per mode that ran.
+    pub fn diagnostics(&self) -> BTreeMap<String, DiagnosticsReport> {
+        let mut out = BTreeMap::new();
+        out.insert("all".to_string(), self.diagnostics.report());
+        for (mode, d) in &self.diagnostics_by_mode {
+            out.insert(mode.as_str().to_string(), d.report());
+        }
+        out
     }
 
     /// `all` plus one report per mode that ran.
@@ -81,6 +120,9 @@ pub struct EvalReport {
     pub model: ModelRef,
     /// The forced mode, if any.
     pub mode: Option<RequestedMode>,
+    /// The heading error put on every request box, if any (`--heading-noise`).
+    #[serde(default, skip_serializing_if = "Option::is_none", skip_deserializing)]
+    pub heading_noise: Option<HeadingNoise>,
     pub frames: usize,
     pub failed_frames: usize,
     /// Persons with ground truth that got no pose (no LiDAR point in the box, ...); not scored.
@@ -89,6 +131,8 @@ pub struct EvalReport {
     pub failures: Vec<String>,
     /// `all` and per mode.
     pub metrics: BTreeMap<String, MetricsReport>,
+    /// Left/right swaps and facing error, `all` and per mode.
+    pub diagnostics: BTreeMap<String, DiagnosticsReport>,
 }
 
 impl EvalReport {
@@ -106,8 +150,22 @@ impl EvalReport {
         for f in &self.failures {
             out.push_str(&format!("  failed: {f}\n"));
         }
+        if let Some(n) = self.heading_noise {
+            out.push_str(&format!("request box headings turned by: {n} (degrees)\n"));
+        }
         for (name, report) in &self.metrics {
             out.push_str(&format!("\n== {name}\n{}", report.table()));
+            if let Some(d) = self.diagnostics.get(name) {
+                let pct = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{:.1} %", 100.0 * v));
+                let deg = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.1}°"));
+                out.push_str(&format!(
+                    "left/right swapped {} of {} · facing error median {} of {}\n",
+                    pct(d.left_right_swap_rate),
+                    d.swap_judged,
+                    deg(d.facing_error_median_deg),
+                    d.facing_judged
+                ));
+            }
         }
         out
     }
@@ -176,26 +234,37 @@ pub async fn evaluate_frames(
     Ok(EvaluateResponse {
         predictions: results.into_iter().map(|(_, it)| it).collect(),
         metrics: acc.reports(),
+        diagnostics: acc.diagnostics(),
         failed_frames: failed,
         skipped_persons: acc.skipped(),
     })
 }
 
-/// The `posefuse eval` report of a data set's fixtures (`mode`, when given, forced on every frame).
-pub async fn evaluate_fixtures(
-    predictor: &Predictor,
-    data: &Path,
-    mode: Option<RequestedMode>,
-    concurrency: usize,
-    timeout: Duration,
-) -> Result<EvalReport> {
-    let mut fixtures = load_fixtures(data)?;
-    if let Some(m) = mode {
-        for (_, f) in &mut fixtures {
+/// How `posefuse eval` runs a data set's fixtures.
+#[derive(Debug, Clone)]
+pub struct FixtureRun {
+    /// Forced on every frame, when given.
+    pub mode: Option<RequestedMode>,
+    /// Put on every request box's heading, when given (seeded by `noise_seed`).
+    pub heading_noise: Option<HeadingNoise>,
+    pub noise_seed: u64,
+    /// Frames answered at once (the results do not depend on it).
+    pub concurrency: usize,
+    pub timeout: Duration,
+}
+
+/// The `posefuse eval` report of a data set's fixtures.
+pub async fn evaluate_fixtures(predictor: &Predictor, data: &Path, run: &FixtureRun) -> Result<EvalReport> {
+    let (names, mut frames): (Vec<String>, Vec<Frame>) = load_fixtures(data)?.into_iter().unzip();
+    if let Some(m) = run.mode {
+        for f in &mut frames {
             f.mode = m;
         }
     }
-    let (names, frames): (Vec<String>, Vec<Frame>) = fixtures.into_iter().unzip();
+    if let Some(noise) = run.heading_noise {
+        perturb_headings(&mut frames, noise, run.noise_seed);
+    }
+    let (mode, concurrency, timeout) = (run.mode, run.concurrency, run.timeout);
     let n = frames.len();
     let ev = evaluate_frames(predictor, frames.into_iter().map(Ok).collect(), concurrency, timeout).await?;
     let failures = ev
@@ -214,5 +283,7 @@ pub async fn evaluate_fixtures(
         skipped_persons: ev.skipped_persons,
         failures,
         metrics: ev.metrics,
+        diagnostics: ev.diagnostics,
+        heading_noise: run.heading_noise,
     })
 }

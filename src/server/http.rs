@@ -15,8 +15,9 @@ use serde::de::DeserializeOwned;
 
 use super::AppState;
 use crate::error::{Error, Result};
+use crate::eval::EvaluateResponse;
 use crate::frame::Frame;
-use crate::service::api::{BatchItem, ErrorBody, EvaluateResponse, HealthResponse, PoseResponse};
+use crate::service::api::{BatchItem, ErrorBody, HealthResponse, PoseResponse};
 use crate::service::json::{from_value, parse_json};
 
 const NDJSON: &str = "application/x-ndjson";

@@ -1,13 +1,10 @@
 //! Response types of the HTTP API (JSON) and of the CLI; the gRPC messages mirror them.
 
-use std::collections::BTreeMap;
-
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
 
 use crate::error::{Error, Result};
 use crate::frame::Box2d;
-use crate::metrics::MetricsReport;
 pub use crate::pipeline::Facing;
 
 /// The model path that produced a person's pose.
@@ -165,19 +162,6 @@ impl BatchItem {
             Err(e) => BatchItem { index, response: None, error: Some(ErrorDetail::from(&e)) },
         }
     }
-}
-
-/// Predictions and metrics over frames with ground truth.
-#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, ToSchema)]
-pub struct EvaluateResponse {
-    /// Per-frame results, in request order.
-    pub predictions: Vec<BatchItem>,
-    /// Metrics over all persons with ground truth (`all`) and per mode that ran.
-    pub metrics: BTreeMap<String, MetricsReport>,
-    /// Frames that failed (their persons are not scored).
-    pub failed_frames: usize,
-    /// Persons with ground truth that got no pose (listed in their frame's `skipped`; not scored).
-    pub skipped_persons: usize,
 }
 
 /// `GET /healthz`, `GET /readyz`.
