@@ -9,6 +9,7 @@ pub mod health;
 pub mod http;
 pub mod metrics;
 pub mod predict;
+pub mod viewer;
 
 use std::future::Future;
 use std::net::SocketAddr;
