@@ -101,9 +101,7 @@ mod tests {
     /// Values of `attr="..."` in an HTML text.
     fn attribute_values<'a>(html: &'a str, attr: &str) -> Vec<&'a str> {
         let pat = format!(" {attr}=\"");
-        html.match_indices(&pat)
-            .filter_map(|(i, _)| html[i + pat.len()..].split('"').next())
-            .collect()
+        html.match_indices(&pat).filter_map(|(i, _)| html[i + pat.len()..].split('"').next()).collect()
     }
 
     #[tokio::test]
