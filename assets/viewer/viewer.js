@@ -522,6 +522,7 @@ function drawCloseups() {
     const p = state.persons[i];
     const cam = state.cameras.find((c) => c.name === p.panel);
     fig.classList.toggle('selected', i === state.selected);
+    if (i === state.selected) reveal($('closeups'), fig);
     const canvas = fig.querySelector('canvas');
     const { w, h, dpr } = fitCanvas(canvas);
     const ctx = canvas.getContext('2d');
@@ -676,6 +677,16 @@ function renderMetrics() {
   ]);
 }
 
+/** Scrolls `container` (not the page) so that `child` is in view. */
+function reveal(container, child) {
+  const c = container.getBoundingClientRect();
+  const r = child.getBoundingClientRect();
+  if (r.top < c.top) container.scrollTop -= c.top - r.top;
+  else if (r.bottom > c.bottom) container.scrollTop += r.bottom - c.bottom;
+  if (r.left < c.left) container.scrollLeft -= c.left - r.left;
+  else if (r.right > c.right) container.scrollLeft += r.right - c.right;
+}
+
 /** Selects person `i` (-1: none): list, details, camera and 3D view follow. */
 function select(i) {
   state.selected = i >= 0 && i < state.persons.length ? i : -1;
@@ -687,7 +698,7 @@ function select(i) {
   }
   if (state.selected >= 0) {
     list.setAttribute('aria-activedescendant', `person-${state.selected}`);
-    $(`person-${state.selected}`).scrollIntoView({ block: 'nearest' });
+    reveal(list, $(`person-${state.selected}`));
   } else {
     list.removeAttribute('aria-activedescendant');
   }

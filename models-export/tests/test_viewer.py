@@ -265,3 +265,40 @@ def test_viewer_shows_the_api_error_for_a_bad_frame(browser, server, tmp_path):
         assert page.locator("#persons li").count() == 0, "a refused frame leaves no person on screen"
     # The browser logs each refused request; nothing else may go wrong.
     assert [p for p in problems if "Failed to load resource" not in p] == [], problems
+
+
+def test_viewer_stays_usable_with_twenty_persons_at_laptop_width(browser, server, tmp_path):
+    frame = json.loads(EXAMPLE.read_text())
+    persons = frame["persons"]
+    frame["persons"] = [dict(persons[i % len(persons)], id=f"person-{i:02d}") for i in range(20)]
+    crowd = tmp_path / "twenty.json"
+    crowd.write_text(json.dumps(frame))
+    page, problems = _open_page(browser, server)
+    data = _open_frame(page, crowd)
+    assert page.get_attribute("body", "data-state") == "ready", page.inner_text("#error")
+    response = data["predictions"][0]["response"] if "predictions" in data else data
+    answered = len(response["persons"])
+    assert page.locator("#persons li").count() == answered == 20 - len(response.get("skipped", []))
+    # Nothing overflows the laptop-width viewport sideways; the long list scrolls on its own.
+    assert page.evaluate("document.documentElement.scrollWidth") <= VIEWPORT["width"]
+    assert page.evaluate("(l => l.scrollHeight > l.clientHeight)(document.getElementById('persons'))")
+    page.focus("#persons")
+    page.keyboard.press("End")
+    last = f"person-{answered - 1}"
+    assert page.get_attribute("#persons", "aria-activedescendant") == last
+    visible = page.evaluate(
+        """id => { const l = document.getElementById('persons').getBoundingClientRect();
+                   const r = document.getElementById(id).getBoundingClientRect();
+                   return r.top >= l.top - 1 && r.bottom <= l.bottom + 1; }""",
+        last,
+    )
+    assert visible, "the selected person is scrolled into view"
+    assert response["persons"][-1]["id"] in page.inner_text("#detail")
+    closeup_visible = page.evaluate(
+        """i => { const c = document.getElementById('closeups').getBoundingClientRect();
+                  const r = document.querySelector(`#closeups [data-person="${i}"]`).getBoundingClientRect();
+                  return r.left >= c.left - 1 && r.right <= c.right + 1; }""",
+        answered - 1,
+    )
+    assert closeup_visible, "the selected person's close-up is scrolled into view"
+    assert problems == [], problems
