@@ -145,10 +145,19 @@ def _open_page(browser, server):
     return page, problems
 
 
-def _open_frame(page, path: Path):
-    """Opens a file through the file picker; returns the API's JSON answer the page received."""
+def _open_frame(page, path: Path, how: str = "picker"):
+    """Opens a file through the file picker or by dropping it on the page; returns the API's JSON
+    answer the page received."""
     with page.expect_response(lambda r: r.request.method == "POST" and "/v1/" in r.url) as answer:
-        page.set_input_files("#file", str(path))
+        if how == "picker":
+            page.set_input_files("#file", str(path))
+        else:
+            files = page.evaluate_handle(
+                """([name, text]) => { const dt = new DataTransfer();
+                       dt.items.add(new File([text], name, { type: 'application/json' })); return dt; }""",
+                [path.name, path.read_text()],
+            )
+            page.dispatch_event("main", "drop", {"dataTransfer": files})
     page.wait_for_selector("body[data-state=ready], body[data-state=error]", timeout=60_000)
     return answer.value.json()
 
@@ -242,6 +251,22 @@ def test_viewer_draws_every_persons_pose(browser, server, tmp_path):
     page.keyboard.press("Escape")
     assert page.get_attribute("#persons", "aria-activedescendant") is None
 
+    # The 3D view turns and zooms from the keyboard.
+    before = page.evaluate("document.getElementById('scene').toDataURL()")
+    page.focus("#scene")
+    page.keyboard.press("ArrowLeft")
+    turned = page.evaluate("document.getElementById('scene').toDataURL()")
+    page.keyboard.press("+")
+    zoomed = page.evaluate("document.getElementById('scene').toDataURL()")
+    assert before != turned != zoomed
+
+    # The bundled example opens from the page's own list and gives the same persons.
+    with page.expect_response(lambda r: r.request.method == "POST" and "/v1/" in r.url):
+        page.select_option("#example", "frame.json")
+    page.wait_for_selector("body[data-state=ready]", timeout=60_000)
+    ids = page.eval_on_selector_all("#persons li", "els => els.map(e => e.dataset.id)")
+    assert ids == [p["id"] for p in response["persons"]]
+
     assert problems == [], problems
 
 
@@ -253,11 +278,11 @@ def test_viewer_shows_the_api_error_for_a_bad_frame(browser, server, tmp_path):
     not_json = tmp_path / "not-json.json"
     not_json.write_text('{"persons": [oops')
     page, problems = _open_page(browser, server)
-    for path in (bad, not_json):
+    for path, how in ((bad, "picker"), (not_json, "drop")):
         status, body = _post(f"{server}/v1/poses", path.read_bytes())
         assert status in (400, 422), body
         expected = body["error"]
-        _open_frame(page, path)
+        _open_frame(page, path, how)
         assert page.get_attribute("body", "data-state") == "error", path.name
         assert page.is_visible("#error")
         assert page.inner_text("#error .message") == expected["message"]
