@@ -149,27 +149,37 @@ function buildPersons(frame, response, cameras) {
 
 /** Points inside or within NEAR_M of a person's box (owner = that person when inside). */
 function nearPoints(all, persons) {
-  const boxes = persons.map((p) => p.request?.box_3d).filter(Boolean);
+  // Each box with a bounding sphere, so most points of a large scan are passed over quickly.
+  const boxes = [];
+  persons.forEach((p, pi) => {
+    const b = p.request?.box_3d;
+    if (b) boxes.push({ b, pi, r: Math.hypot(b.length, b.width, b.height) / 2 + NEAR_M * Math.sqrt(3) });
+  });
   const keep = [];
   const owner = [];
   for (let i = 0; i + 2 < all.length; i += 3) {
     let own = -2;
-    persons.forEach((p, pi) => {
-      const b = p.request?.box_3d;
-      if (!b || own >= 0) return;
+    for (const { b, pi, r } of boxes) {
+      const dx = all[i] - b.center_x;
+      const dy = all[i + 1] - b.center_y;
+      const dz = all[i + 2] - b.center_z;
+      if (dx * dx + dy * dy + dz * dz > r * r) continue;
       const q = toBox(b, all[i], all[i + 1], all[i + 2]);
       const ax = Math.abs(q[0]) - b.length / 2;
       const ay = Math.abs(q[1]) - b.width / 2;
       const az = Math.abs(q[2]) - b.height / 2;
-      if (ax <= 0 && ay <= 0 && az <= 0) own = pi;
-      else if (ax <= NEAR_M && ay <= NEAR_M && az <= NEAR_M) own = -1;
-    });
+      if (ax <= 0 && ay <= 0 && az <= 0) {
+        own = pi;
+        break;
+      }
+      if (ax <= NEAR_M && ay <= NEAR_M && az <= NEAR_M) own = -1;
+    }
     if (own >= -1) {
       keep.push(all[i], all[i + 1], all[i + 2]);
       owner.push(own);
     }
   }
-  return { points: Float32Array.from(keep), owner: Int32Array.from(owner), boxes: boxes.length };
+  return { points: Float32Array.from(keep), owner: Int32Array.from(owner) };
 }
 
 // ---------------------------------------------------------------- formatting
