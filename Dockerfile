@@ -19,6 +19,9 @@ COPY Cargo.toml Cargo.lock build.rs rustfmt.toml ./
 COPY proto proto
 COPY benches benches
 COPY src src
+# The viewer's page and example frame are embedded in the binary.
+COPY assets assets
+COPY examples examples
 # No debug info: the image is for serving (the repository's release profile keeps it for profiling).
 RUN --mount=type=cache,target=/usr/local/cargo/registry \
     --mount=type=cache,target=/src/target \

@@ -7,6 +7,7 @@ pub mod grpc;
 pub mod health;
 pub mod http;
 pub mod metrics;
+pub mod viewer;
 
 use std::future::Future;
 use std::path::PathBuf;
