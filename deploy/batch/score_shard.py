@@ -2,11 +2,12 @@
 
 Run by each pod of deploy/batch/job.yaml (a Kubernetes Indexed Job): pod JOB_COMPLETION_INDEX of
 NUM_SHARDS takes every NUM_SHARDS-th frame line (counted over the sorted `*.ndjson` files of
-INPUT_DIR), streams them to POSEFUSE_URL in chunks of CHUNK_FRAMES, and writes one result line per
+INPUT_DIR), streams them to POSEFUSE_URL in chunks of CHUNK_FRAMES (each tried up to TRIES times
+on 429, 5xx or a connection error), and writes one result line per
 frame to OUTPUT_DIR/shard-<index>-of-<count>.ndjson:
   {"file": ..., "line": ..., "response": {...}}  or  {"file": ..., "line": ..., "error": {...}}
 The file appears only when the shard is complete (written aside, then renamed), so a retried pod
-starts over cleanly. Standard library only: it runs on any Python 3.9+ image.
+starts over cleanly. Standard library only: it runs on any Python 3.10+ image.
 Exit status: 0 when every frame has a response, 1 when some frames got an error item, 2 on a
 transport failure after retries.
 """
@@ -69,6 +70,7 @@ def main() -> int:
     output_dir = Path(os.environ.get("OUTPUT_DIR", "/data/results"))
     chunk_frames = int(os.environ.get("CHUNK_FRAMES", "64"))
     timeout = float(os.environ.get("REQUEST_TIMEOUT_S", "300"))
+    tries = int(os.environ.get("TRIES", "4"))
 
     output_dir.mkdir(parents=True, exist_ok=True)
     final = output_dir / f"shard-{index:05d}-of-{count:05d}.ndjson"
@@ -78,8 +80,8 @@ def main() -> int:
 
     def flush(chunk, out):
         nonlocal frames, errors
-        items = post_chunk(url, [line for _, _, line in chunk], timeout)
-        for (name, number, _), item in zip(chunk, items):
+        items = post_chunk(url, [line for _, _, line in chunk], timeout, tries)
+        for (name, number, _), item in zip(chunk, items, strict=True):
             record = {"file": name, "line": number}
             if "response" in item:
                 record["response"] = item["response"]
