@@ -1,5 +1,5 @@
 """The committed descriptor (posefuse_client/posefuse.binpb) is proto/posefuse.proto as it is
-(regenerate with clients/python/generate_stubs.sh when this fails), and the messages built from it
+(regenerate with clients/python/generate-descriptor.sh when this fails), and the messages built from it
 carry the fields the client sets."""
 
 import subprocess
