@@ -19,7 +19,7 @@ cargo test --locked --all-targets
 
 echo "== Python tests"
 # The trainer's tests, then the Python client's (end to end against target/debug/posefuse, built
-# above) and the deploy/ manifests' (two sessions: the trainer's tests import their conftest by
+# above) and the deploy/ manifests' (two pytest runs: the trainer's tests import their conftest by
 # name); -rs prints the reason of any skip.
 .venv/bin/python -m pytest -q -rs models-export
 .venv/bin/python -m pytest -q -rs clients/python deploy

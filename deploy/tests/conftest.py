@@ -3,7 +3,7 @@ from pathlib import Path
 
 import pytest
 
-# The live-server helper of the Python client's tests: one way to start `posefuse serve`.
+# The Python client tests' live_server module: one way to start `posefuse serve`.
 sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "clients" / "python" / "tests"))
 
 import live_server  # noqa: E402
