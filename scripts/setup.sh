@@ -31,4 +31,5 @@ fi
 
 "$VENV/bin/python" -m pip install -q -r models-export/requirements.txt
 "$VENV/bin/python" -m pip install -q --no-deps -e models-export
-echo "set-up done: $VENV (python, the trainer), .ort/lib/libonnxruntime.so"
+"$VENV/bin/python" -m pip install -q --no-deps -e clients/python
+echo "set-up done: $VENV (python, the trainer, the Python client), .ort/lib/libonnxruntime.so"

@@ -1,5 +1,6 @@
 #!/usr/bin/env bash
-# Every test of the project: set-up (idempotent), lints, Rust tests, Python tests.
+# Every test of the project: set-up (idempotent), lints, Rust tests, Python tests, and the
+# container check where a container engine is usable.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 
@@ -11,10 +12,17 @@ cargo fmt --all -- --check
 cargo clippy --all-targets --locked -- -D warnings
 
 echo "== ruff"
-.venv/bin/ruff check models-export
+.venv/bin/ruff check models-export clients/python deploy scripts
 
 echo "== Rust tests"
 cargo test --locked --all-targets
 
 echo "== Python tests"
-.venv/bin/python -m pytest -q models-export
+# The trainer's tests, then the Python client's (end to end against target/debug/posefuse, built
+# above) and the deploy/ manifests' (two pytest runs: the trainer's tests import their conftest by
+# name); -rs prints the reason of any skip.
+.venv/bin/python -m pytest -q -rs models-export
+.venv/bin/python -m pytest -q -rs clients/python deploy
+
+echo "== container"
+bash scripts/container-ci.sh

@@ -1,0 +1,43 @@
+"""posefuse-client: typed Python clients (HTTP and gRPC, sync and async) for a posefuse server."""
+
+from .errors import PosefuseError
+from .grpc_client import AsyncGrpcClient, GrpcClient
+from .http_client import AsyncClient, Client
+from .images import encode_jpeg, encode_png
+from .types import (
+    BatchResult,
+    Box2d,
+    Box3d,
+    Calibration,
+    ErrorInfo,
+    Frame,
+    GroundTruth,
+    Person,
+    PersonPose,
+    PoseResponse,
+    SkippedPerson,
+    Timings,
+)
+
+__version__ = "0.1.0"
+__all__ = [
+    "AsyncClient",
+    "AsyncGrpcClient",
+    "BatchResult",
+    "Box2d",
+    "Box3d",
+    "Calibration",
+    "Client",
+    "ErrorInfo",
+    "Frame",
+    "GrpcClient",
+    "GroundTruth",
+    "Person",
+    "PersonPose",
+    "PoseResponse",
+    "PosefuseError",
+    "SkippedPerson",
+    "Timings",
+    "encode_jpeg",
+    "encode_png",
+]

@@ -1,0 +1,386 @@
+"""Typed requests and responses. Points and keypoints are numpy arrays; the JSON and protobuf forms
+of the server's API (docs in the repository's README and proto/posefuse.proto) are built here."""
+
+from __future__ import annotations
+
+import base64
+from collections.abc import Sequence
+from dataclasses import dataclass, field
+from typing import Any, Literal
+
+import numpy as np
+
+from .errors import grpc_message_code
+from .images import image_bytes
+
+Mode = Literal["auto", "fusion", "lidar", "camera"]
+MODES: tuple[str, ...] = ("auto", "fusion", "lidar", "camera")
+
+
+@dataclass
+class Calibration:
+    """Waymo camera model: intrinsic [f_u, f_v, c_u, c_v, k1, k2, p1, p2, k3], 4x4 camera→vehicle
+    extrinsic (row-major, 16 numbers or a [4, 4] array), image width and height in pixels."""
+
+    intrinsic: Sequence[float]
+    extrinsic: Sequence[float] | np.ndarray
+    width: int
+    height: int
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "intrinsic": [float(v) for v in self.intrinsic],
+            "extrinsic": [float(v) for v in np.asarray(self.extrinsic, dtype=np.float64).reshape(-1)],
+            "width": int(self.width),
+            "height": int(self.height),
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Calibration:
+        return cls(list(d["intrinsic"]), list(d["extrinsic"]), int(d["width"]), int(d["height"]))
+
+
+@dataclass
+class Box2d:
+    """Centre and size in image pixels."""
+
+    center_x: float
+    center_y: float
+    width: float
+    height: float
+
+    def to_json(self) -> dict[str, float]:
+        return {k: float(getattr(self, k)) for k in ("center_x", "center_y", "width", "height")}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Box2d:
+        return cls(d["center_x"], d["center_y"], d["width"], d["height"])
+
+
+@dataclass
+class Box3d:
+    """Centre (vehicle frame, metres), size (length along heading, width, height) and heading (yaw
+    about z, radians)."""
+
+    center_x: float
+    center_y: float
+    center_z: float
+    length: float
+    width: float
+    height: float
+    heading: float
+
+    _FIELDS = ("center_x", "center_y", "center_z", "length", "width", "height", "heading")
+
+    def to_json(self) -> dict[str, float]:
+        return {k: float(getattr(self, k)) for k in self._FIELDS}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Box3d:
+        return cls(*(d[k] for k in cls._FIELDS))
+
+
+@dataclass
+class GroundTruth:
+    """Labels for /v1/evaluate: 3D keypoints [13, 3] (vehicle frame) and/or 2D [13, 2] (pixels),
+    each with a visibility mask [13]."""
+
+    keypoints_3d: np.ndarray | None = None
+    visible_3d: np.ndarray | None = None
+    keypoints_2d: np.ndarray | None = None
+    visible_2d: np.ndarray | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {}
+        if self.keypoints_3d is not None:
+            xyz = np.asarray(self.keypoints_3d, dtype=np.float64)
+            vis = np.ones(len(xyz), bool) if self.visible_3d is None else np.asarray(self.visible_3d, bool)
+            out["keypoints_3d"] = {"xyz": xyz.tolist(), "visible": vis.tolist()}
+        if self.keypoints_2d is not None:
+            uv = np.asarray(self.keypoints_2d, dtype=np.float64)
+            vis = np.ones(len(uv), bool) if self.visible_2d is None else np.asarray(self.visible_2d, bool)
+            out["keypoints_2d"] = {"uv": uv.tolist(), "visible": vis.tolist()}
+        return out
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> GroundTruth:
+        gt = cls()
+        if "keypoints_3d" in d:
+            gt.keypoints_3d = np.asarray(d["keypoints_3d"]["xyz"], dtype=np.float64).reshape(-1, 3)
+            gt.visible_3d = np.asarray(d["keypoints_3d"]["visible"], dtype=bool)
+        if "keypoints_2d" in d:
+            gt.keypoints_2d = np.asarray(d["keypoints_2d"]["uv"], dtype=np.float64).reshape(-1, 2)
+            gt.visible_2d = np.asarray(d["keypoints_2d"]["visible"], dtype=bool)
+        return gt
+
+
+@dataclass
+class Person:
+    """A person to estimate: id, 3D box, and the 2D box when known (else the projected 3D box)."""
+
+    id: str
+    box_3d: Box3d
+    box_2d: Box2d | None = None
+    ground_truth: GroundTruth | None = None
+
+    def to_json(self) -> dict[str, Any]:
+        out: dict[str, Any] = {"id": self.id, "box_3d": self.box_3d.to_json()}
+        if self.box_2d is not None:
+            out["box_2d"] = self.box_2d.to_json()
+        if self.ground_truth is not None:
+            out["ground_truth"] = self.ground_truth.to_json()
+        return out
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Person:
+        return cls(
+            id=d["id"],
+            box_3d=Box3d.from_json(d["box_3d"]),
+            box_2d=Box2d.from_json(d["box_2d"]) if d.get("box_2d") is not None else None,
+            ground_truth=GroundTruth.from_json(d["ground_truth"]) if d.get("ground_truth") is not None else None,
+        )
+
+
+@dataclass
+class Frame:
+    """One camera frame and its LiDAR sweep.
+
+    points: [N, 3] x, y, z in the vehicle frame (metres); sent as little-endian float32.
+    image: encoded JPEG/PNG bytes, or a uint8 array [H, W, 3] (sent as PNG); None: LiDAR only.
+    """
+
+    calibration: Calibration
+    points: np.ndarray
+    persons: list[Person]
+    image: bytes | np.ndarray | None = None
+    frame_id: str | None = None
+    mode: Mode = "auto"
+
+    def points_bytes(self) -> bytes:
+        pts = np.asarray(self.points, dtype="<f4")
+        if pts.ndim != 2 or pts.shape[1] != 3:
+            raise ValueError(f"points must be [N, 3], got shape {pts.shape}")
+        return np.ascontiguousarray(pts).tobytes()
+
+    def to_json(self) -> dict[str, Any]:
+        """The body of POST /v1/poses (points in the compact base64 form)."""
+        out: dict[str, Any] = {}
+        if self.frame_id is not None:
+            out["frame_id"] = self.frame_id
+        img = image_bytes(self.image)
+        if img is not None:
+            out["image"] = base64.b64encode(img).decode("ascii")
+        out["calibration"] = self.calibration.to_json()
+        out["points"] = {"b64": base64.b64encode(self.points_bytes()).decode("ascii")}
+        out["persons"] = [p.to_json() for p in self.persons]
+        if self.mode != "auto":
+            out["mode"] = self.mode
+        return out
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Frame:
+        """A frame from its JSON form (e.g. examples/frame.json); either points form is read."""
+        pts = d["points"]
+        if isinstance(pts, dict):
+            points = np.frombuffer(base64.b64decode(pts["b64"]), dtype="<f4").reshape(-1, 3)
+        else:
+            points = np.asarray(pts, dtype=np.float32).reshape(-1, 3)
+        return cls(
+            calibration=Calibration.from_json(d["calibration"]),
+            points=points,
+            persons=[Person.from_json(p) for p in d["persons"]],
+            image=base64.b64decode(d["image"]) if d.get("image") else None,
+            frame_id=d.get("frame_id"),
+            mode=d.get("mode", "auto"),
+        )
+
+    def to_proto(self):
+        """The gRPC PredictRequest (ground truth is not part of it)."""
+        from . import _proto as pb
+
+        c = self.calibration.to_json()
+        persons = []
+        for p in self.persons:
+            person = pb.Person(id=p.id, box_3d=pb.Box3d(**p.box_3d.to_json()))
+            if p.box_2d is not None:
+                person.box_2d.CopyFrom(pb.Box2d(**p.box_2d.to_json()))
+            persons.append(person)
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
+        return pb.PredictRequest(
+            frame_id=self.frame_id or "",
+            image=image_bytes(self.image) or b"",
+            calibration=pb.Calibration(**c),
+            points=self.points_bytes(),
+            persons=persons,
+            mode=MODES.index(self.mode),
+        )
+
+
+@dataclass
+class ErrorInfo:
+    """An error item (batch, stream or skipped person): code, message, field."""
+
+    code: str
+    message: str
+    field: str | None = None
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> ErrorInfo:
+        return cls(d["code"], d["message"], d.get("field"))
+
+
+@dataclass
+class PersonPose:
+    """One person's pose.
+
+    keypoints_3d: [13, 3] vehicle frame, metres. keypoints_2d: [13, 2] image pixels, NaN where a
+    keypoint does not project. scores: [13] heatmap peaks, NaN when no camera ran.
+    """
+
+    id: str
+    mode: str
+    mode_reason: str
+    num_points: int
+    names: list[str]
+    waymo_types: list[int]
+    keypoints_3d: np.ndarray
+    keypoints_2d: np.ndarray
+    scores: np.ndarray
+    box_2d: Box2d | None = None
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> PersonPose:
+        kps = d["keypoints"]
+        nan = float("nan")
+        return cls(
+            id=d["id"],
+            mode=d["mode"],
+            mode_reason=d["mode_reason"],
+            num_points=int(d["num_points"]),
+            names=[k["name"] for k in kps],
+            waymo_types=[int(k["waymo_type"]) for k in kps],
+            keypoints_3d=np.array([k["xyz"] for k in kps], dtype=np.float64).reshape(-1, 3),
+            keypoints_2d=np.array([k["uv"] if k.get("uv") is not None else (nan, nan) for k in kps],
+                                  dtype=np.float64).reshape(-1, 2),
+            scores=np.array([k["score"] if k.get("score") is not None else nan for k in kps], dtype=np.float64),
+            box_2d=Box2d.from_json(d["box_2d"]) if d.get("box_2d") is not None else None,
+        )
+
+    @classmethod
+    def from_proto(cls, p) -> PersonPose:
+        kps = p.keypoints
+        return cls(
+            id=p.id,
+            mode=MODES[p.mode],
+            mode_reason=p.mode_reason,
+            num_points=int(p.num_points),
+            names=[k.name for k in kps],
+            waymo_types=[int(k.waymo_type) for k in kps],
+            keypoints_3d=np.array([(k.x, k.y, k.z) for k in kps], dtype=np.float64).reshape(-1, 3),
+            keypoints_2d=np.array([(k.u, k.v) for k in kps], dtype=np.float64).reshape(-1, 2),
+            scores=np.array([k.score for k in kps], dtype=np.float64),
+        )
+
+
+@dataclass
+class SkippedPerson:
+    """A requested person without a pose (e.g. no LiDAR point in its box)."""
+
+    index: int
+    id: str
+    error: ErrorInfo
+
+
+@dataclass
+class Timings:
+    decode_ms: float = 0.0
+    preprocess_ms: float = 0.0
+    queue_ms: float = 0.0
+    inference_ms: float = 0.0
+    total_ms: float = 0.0
+
+
+@dataclass
+class PoseResponse:
+    """Poses of one frame, in request order, and the bundle that answered."""
+
+    model_name: str
+    model_version: str
+    persons: list[PersonPose]
+    skipped: list[SkippedPerson] = field(default_factory=list)
+    timings: Timings = field(default_factory=Timings)
+    frame_id: str | None = None
+
+    def person(self, person_id: str) -> PersonPose:
+        """The pose of the person with this id (KeyError when it got none)."""
+        for p in self.persons:
+            if p.id == person_id:
+                return p
+        raise KeyError(person_id)
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> PoseResponse:
+        return cls(
+            model_name=d["model"]["name"],
+            model_version=d["model"]["version"],
+            persons=[PersonPose.from_json(p) for p in d["persons"]],
+            skipped=[SkippedPerson(s["index"], s["id"], ErrorInfo.from_json(s["error"])) for s in d.get("skipped", [])],
+            timings=Timings(**{k: float(v) for k, v in d["timings"].items() if k in Timings.__dataclass_fields__}),
+            frame_id=d.get("frame_id"),
+        )
+
+    @classmethod
+    def from_proto(cls, r) -> PoseResponse:
+        t = r.timings
+        return cls(
+            model_name=r.model_name,
+            model_version=r.model_version,
+            persons=[PersonPose.from_proto(p) for p in r.persons],
+            skipped=[SkippedPerson(int(s.index), s.id, _proto_error(s.error)) for s in r.skipped],
+            timings=Timings(t.decode_ms, t.preprocess_ms, t.queue_ms, t.inference_ms, t.total_ms),
+            frame_id=r.frame_id or None,
+        )
+
+
+@dataclass
+class BatchResult:
+    """One frame's result in a batch or stream: a response or an error, never both."""
+
+    index: int
+    response: PoseResponse | None = None
+    error: ErrorInfo | None = None
+
+    @property
+    def ok(self) -> bool:
+        return self.response is not None
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any], offset: int = 0) -> BatchResult:
+        return cls(
+            index=int(d["index"]) + offset,
+            response=PoseResponse.from_json(d["response"]) if d.get("response") is not None else None,
+            error=ErrorInfo.from_json(d["error"]) if d.get("error") is not None else None,
+        )
+
+    @classmethod
+    def from_proto(cls, item) -> BatchResult:
+        if item.WhichOneof("result") == "response":
+            return cls(int(item.index), response=PoseResponse.from_proto(item.response))
+        return cls(int(item.index), error=_proto_error(item.error))
+
+
+def _proto_error(e) -> ErrorInfo:
+    _, field_name = grpc_message_code(e.message, e.code)
+    return ErrorInfo(e.code, e.message, field_name)
+
+
+def as_json(frame: Frame | dict[str, Any]) -> dict[str, Any]:
+    """A request body from a Frame or from an already-JSON dict (passed through)."""
+    return frame.to_json() if isinstance(frame, Frame) else frame
+
+
+def as_proto(frame: Frame | dict[str, Any]):
+    """A PredictRequest from a Frame or a JSON dict."""
+    return (frame if isinstance(frame, Frame) else Frame.from_json(frame)).to_proto()
+

@@ -1,0 +1,122 @@
+"""Offline checks of the client's request/response conversion, PNG encoder and error parsing."""
+
+import base64
+import struct
+import zlib
+
+import numpy as np
+import pytest
+
+from posefuse_client import Frame, PosefuseError, PoseResponse, encode_png
+from posefuse_client.errors import grpc_message_code
+
+
+def test_frame_round_trips_through_json_and_proto(frame_json):
+    frame = Frame.from_json(frame_json)
+    assert frame.points.ndim == 2 and frame.points.shape[1] == 3 and len(frame.points) > 0
+    assert len(frame.persons) >= 2
+    again = Frame.from_json(frame.to_json())
+    np.testing.assert_array_equal(again.points, frame.points)
+    assert again.image == frame.image and again.persons[0].box_3d == frame.persons[0].box_3d
+    gt = again.persons[0].ground_truth
+    assert gt is not None and gt.keypoints_3d.shape == (13, 3) and gt.visible_3d.shape == (13,)
+    proto = frame.to_proto()
+    assert np.frombuffer(proto.points, "<f4").reshape(-1, 3).tolist() == frame.points.tolist()
+    assert proto.image == frame.image
+    assert [p.id for p in proto.persons] == [p.id for p in frame.persons]
+    assert proto.calibration.width == frame.calibration.width
+
+
+def test_flat_points_are_read_like_encoded_ones(frame_json):
+    frame = Frame.from_json(frame_json)
+    flat = dict(frame_json, points=frame.points.reshape(-1).tolist())
+    np.testing.assert_array_equal(Frame.from_json(flat).points, frame.points)
+
+
+def test_bad_points_shape_is_refused_before_sending(frame_json):
+    frame = Frame.from_json(frame_json)
+    frame.points = np.zeros((4, 2), np.float32)
+    with pytest.raises(ValueError, match=r"\[N, 3\]"):
+        frame.to_json()
+
+
+def decode_png(data: bytes) -> np.ndarray:
+    """A minimal PNG reader for 8-bit, filter-0 images (what encode_png writes), checking CRCs."""
+    assert data[:8] == b"\x89PNG\r\n\x1a\n"
+    pos, idat, header = 8, b"", None
+    while pos < len(data):
+        (length,) = struct.unpack(">I", data[pos : pos + 4])
+        kind, body = data[pos + 4 : pos + 8], data[pos + 8 : pos + 8 + length]
+        (crc,) = struct.unpack(">I", data[pos + 8 + length : pos + 12 + length])
+        assert crc == zlib.crc32(kind + body)
+        if kind == b"IHDR":
+            header = struct.unpack(">IIBBBBB", body)
+        elif kind == b"IDAT":
+            idat += body
+        pos += 12 + length
+    w, h, depth, color, *_ = header
+    channels = {0: 1, 2: 3, 6: 4}[color]
+    raw = np.frombuffer(zlib.decompress(idat), np.uint8).reshape(h, 1 + w * channels)
+    assert depth == 8 and (raw[:, 0] == 0).all()
+    return raw[:, 1:].reshape(h, w, channels)
+
+
+@pytest.mark.parametrize("shape", [(5, 7, 3), (4, 3), (2, 6, 4)])
+def test_encode_png_writes_the_pixels(shape):
+    image = np.random.default_rng(0).integers(0, 256, shape, dtype=np.uint8)
+    back = decode_png(encode_png(image))
+    np.testing.assert_array_equal(back.reshape(image.shape), image)
+
+
+def test_encode_png_refuses_what_it_cannot_write():
+    with pytest.raises(ValueError, match="uint8"):
+        encode_png(np.zeros((2, 2, 3), np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        encode_png(np.zeros((2, 2, 2), np.uint8))
+
+
+def test_array_image_is_sent_as_png(frame_json):
+    frame = Frame.from_json(frame_json)
+    frame.image = np.full((3, 4, 3), 7, np.uint8)
+    sent = base64.b64decode(frame.to_json()["image"])
+    assert sent.startswith(b"\x89PNG") and frame.to_proto().image == sent
+
+
+def test_http_error_body_gives_code_field_and_status():
+    body = (
+        b'{"error": {"code": "invalid_field", "message": "invalid field `persons[0].id`: x",'
+        b' "field": "persons[0].id"}}'
+    )
+    e = PosefuseError.from_http(422, body)
+    assert (e.code, e.field, e.http_status) == ("invalid_field", "persons[0].id", 422)
+    assert not e.retryable
+    e = PosefuseError.from_http(502, b"<html>bad gateway</html>")
+    assert e.code == "http_502" and "bad gateway" in e.message
+
+
+def test_grpc_messages_give_back_the_json_codes():
+    assert grpc_message_code("invalid field `persons[1].box_3d.width`: must be > 0", "INVALID_ARGUMENT") == (
+        "invalid_field",
+        "persons[1].box_3d.width",
+    )
+    assert grpc_message_code("server overloaded: the request queue is full", "RESOURCE_EXHAUSTED") == (
+        "overloaded",
+        None,
+    )
+    assert grpc_message_code("something new", "INTERNAL") == ("internal", None)
+    assert PosefuseError.from_grpc("UNAVAILABLE", "not ready: warming up").retryable
+
+
+def test_response_without_camera_has_nan_uv_and_scores():
+    kp = {"name": "nose", "waymo_type": 1, "xyz": [1.0, 2.0, 3.0], "uv": None, "score": None}
+    body = {
+        "model": {"name": "default", "version": "0.2.0"},
+        "persons": [{"id": "a", "mode": "lidar", "mode_reason": "r", "num_points": 5, "keypoints": [kp] * 13}],
+        "timings": {"decode_ms": 1, "preprocess_ms": 2, "queue_ms": 0, "inference_ms": 3, "total_ms": 6},
+    }
+    r = PoseResponse.from_json(body)
+    p = r.person("a")
+    assert p.keypoints_3d.shape == (13, 3) and np.isnan(p.keypoints_2d).all() and np.isnan(p.scores).all()
+    assert r.timings.total_ms == 6 and r.skipped == []
+    with pytest.raises(KeyError):
+        r.person("b")
