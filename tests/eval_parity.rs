@@ -215,8 +215,9 @@ fn compare(setup: &Setup, name: &str) -> Compared {
         }
         let resp = &item["response"];
         assert!(resp.is_object(), "{name}: {file} is refused by the server: {item}");
-        let skipped: BTreeSet<&str> =
-            resp["skipped"].as_array().map_or_else(BTreeSet::new, |v| v.iter().map(|s| s["id"].as_str().expect("id")).collect());
+        let skipped: BTreeSet<&str> = resp["skipped"]
+            .as_array()
+            .map_or_else(BTreeSet::new, |v| v.iter().map(|s| s["id"].as_str().expect("id")).collect());
         let want_skipped: BTreeSet<&str> =
             want["skipped"].as_array().expect("skipped").iter().map(|s| s.as_str().expect("id")).collect();
         assert_eq!(skipped, want_skipped, "{name}: {file}: skipped persons");
