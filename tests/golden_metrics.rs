@@ -1,7 +1,9 @@
 //! Golden vectors for the metrics, shared with the trainer's Python copy.
 //!
 //! `tests/golden/metrics.json` is written by this implementation: after an intended change of a
-//! metric, regenerate it with `POSEFUSE_WRITE_GOLDEN=1 cargo test --test golden_metrics`.
+//! metric, regenerate it with `POSEFUSE_WRITE_GOLDEN=1 cargo test --test golden_metrics`. That run
+//! writes the file and fails (so a stray variable never turns the checks into passes); it refuses
+//! to write at all where `CI` is set. Review the diff, then run the tests again without it.
 
 use std::path::PathBuf;
 
@@ -120,16 +122,25 @@ fn assert_close(got: &Value, want: &Value, what: &str) {
     }
 }
 
-/// The golden file, first rewritten from the implementation when `POSEFUSE_WRITE_GOLDEN=1` (once
-/// per run: the tests run in parallel and must not read a half-written file).
+/// The golden file. With `POSEFUSE_WRITE_GOLDEN` set it is rewritten from the implementation
+/// (once per run: the tests run in parallel and must not read a half-written file) and the test
+/// fails; in CI it is never rewritten.
 fn read_golden() -> Value {
-    static WRITE: std::sync::Once = std::sync::Once::new();
-    WRITE.call_once(|| {
-        if std::env::var("POSEFUSE_WRITE_GOLDEN").as_deref() == Ok("1") {
+    if std::env::var_os("POSEFUSE_WRITE_GOLDEN").is_some() {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "POSEFUSE_WRITE_GOLDEN is set in CI: the golden file is not rewritten"
+        );
+        static WRITE: std::sync::Once = std::sync::Once::new();
+        WRITE.call_once(|| {
             let text = serde_json::to_string_pretty(&generate()).unwrap() + "\n";
             std::fs::write(golden_path(), text).unwrap();
-        }
-    });
+        });
+        panic!(
+            "wrote {}: review the diff, then run the tests again without POSEFUSE_WRITE_GOLDEN",
+            golden_path().display()
+        );
+    }
     let text = std::fs::read_to_string(golden_path()).expect("tests/golden/metrics.json (see module docs to write it)");
     serde_json::from_str(&text).expect("golden file is JSON")
 }

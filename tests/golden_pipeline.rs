@@ -1,6 +1,8 @@
 //! Golden vectors for the steps that also run inside the Python trainer: smoothing + sampling,
 //! point normalization and lifting. The files are written from this implementation
-//! (`POSEFUSE_WRITE_GOLDEN=1 cargo test --test golden_pipeline`) and both sides check against them.
+//! (`POSEFUSE_WRITE_GOLDEN=1 cargo test --test golden_pipeline`) and both sides check against them
+//! (models-export/tests: test_fusion.py, test_metrics.py). That run writes the files and fails, so a
+//! stray variable never turns the checks into passes; it refuses to write at all where `CI` is set.
 
 use std::path::PathBuf;
 
@@ -17,13 +19,14 @@ fn golden(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("tests/golden").join(name)
 }
 
-/// Writes `value` when regenerating, otherwise checks it against the committed file.
+/// Checks `value` against the committed file; when regenerating, writes it and fails instead.
 fn check(name: &str, value: Value) {
     let path = golden(name);
     if std::env::var_os("POSEFUSE_WRITE_GOLDEN").is_some() {
+        assert!(std::env::var_os("CI").is_none(), "POSEFUSE_WRITE_GOLDEN is set in CI: {name} is not rewritten");
         let text = serde_json::to_string_pretty(&value).expect("serializable");
         std::fs::write(&path, text + "\n").expect("writable golden dir");
-        return;
+        panic!("wrote {}: review the diff, then run the tests again without POSEFUSE_WRITE_GOLDEN", path.display());
     }
     let text = std::fs::read_to_string(&path).unwrap_or_else(|e| panic!("{}: {e}", path.display()));
     let want: Value = serde_json::from_str(&text).expect("golden JSON");

@@ -53,8 +53,13 @@ def sample_features(smoothed: torch.Tensor, uv: torch.Tensor, image_size: int) -
     return feats * finite.unsqueeze(2).to(feats.dtype)
 
 
-def fused_points(xyz: torch.Tensor, features: torch.Tensor) -> torch.Tensor:
-    return torch.cat([xyz, features], dim=2)
+def smoothed(raw: np.ndarray, cfg, batch: int = 2048) -> np.ndarray:
+    """smooth_heatmaps over a whole numpy array [M,K,H,W] in batches, with the bundle's kernel."""
+    out = np.empty_like(raw)
+    for a in range(0, len(raw), batch):
+        t = torch.from_numpy(raw[a : a + batch])
+        out[a : a + batch] = smooth_heatmaps(t, cfg.smoothing_kernel, cfg.smoothing_sigma).numpy()
+    return out
 
 
 def decode_heatmaps(heatmaps: np.ndarray, image_size: int) -> tuple[np.ndarray, np.ndarray]:

@@ -3,7 +3,9 @@ from pathlib import Path
 
 import pytest
 
+# the tests' helpers, and models-export itself: the library and the experiments and tools packages
 sys.path.insert(0, str(Path(__file__).resolve().parent))
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
 from synthetic import write_dataset  # noqa: E402
 

@@ -1,9 +1,9 @@
 import numpy as np
 
+from experiments.heading_error import with_heading_error
 from posefuse_train import metrics
 from posefuse_train.data import load
 from posefuse_train.evaluate import evaluate
-from posefuse_train.heading_error import with_heading_error
 
 
 def test_a_heading_error_turns_the_model_frame_but_not_the_world(synthetic_sets):

@@ -5,7 +5,7 @@ import torch
 
 from posefuse_train import labels
 from posefuse_train.data import load
-from posefuse_train.train_point import rotate_z
+from posefuse_train.train import rotate_z
 
 
 def test_lift_matches_a_hand_computed_softmax():

@@ -76,3 +76,21 @@ def test_metrics_match_the_server_golden_cases():
         mp = float(np.nanmean(err)) if np.isfinite(err).any() else None
         assert (mp is None) if c["mpjpe"] is None else mp == pytest.approx(c["mpjpe"], rel=1e-9, abs=1e-12), i
     assert metrics.oks_acc(np.array(g["oks_acc"]["oks"])) == pytest.approx(g["oks_acc"]["value"], abs=1e-12)
+
+
+def test_box_frame_matches_the_server_golden_vectors():
+    """tests/golden/points.json: vehicle points and their model-input (box-frame) coordinates as
+    the Rust pipeline computes them; the Python inverse maps the latter back onto the former."""
+    path = GOLDEN / "points.json"
+    if not path.exists():
+        pytest.fail(f"{path} is missing: it is written from src/pipeline and pins the Python copy")
+    g = json.loads(path.read_text())
+    b = g["box3d"]
+    box = np.array(
+        [[b[k] for k in ("center_x", "center_y", "center_z", "length", "width", "height", "heading")]]
+    )
+    local = np.array(g["local"], np.float64)[None]
+    vehicle = metrics.local_to_vehicle(local, box, g["rotate_by_heading"])
+    np.testing.assert_allclose(vehicle[0], g["vehicle"], rtol=0, atol=1e-9)
+    # the heading matters: without it the points land elsewhere
+    assert np.abs(metrics.local_to_vehicle(local, box, False)[0] - g["vehicle"]).max() > 0.1

@@ -1,8 +1,7 @@
 import numpy as np
 
-from posefuse_train.ablation import degrade_lidar
-from posefuse_train.keypoints import NAMES
-from posefuse_train.report import (
+from experiments.ablation import degrade_lidar
+from experiments.report import (
     bundle_source,
     default_bundle_section,
     heading_error_table,
@@ -10,6 +9,7 @@ from posefuse_train.report import (
     street_section,
     table3,
 )
+from posefuse_train.keypoints import NAMES
 
 METRICS = {"oks_acc_3d": 0.5, "mpjpe_3d_m": 0.1, "oks_acc_2d": 0.9, "pck_3d_10cm": 0.5, "pem_3d_m": 0.1}
 

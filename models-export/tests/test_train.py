@@ -7,8 +7,15 @@ from posefuse_train.config import CameraNetConfig, PointNetConfig
 from posefuse_train.data import load
 from posefuse_train.keypoints import FLIP, K
 from posefuse_train.losses import heatmap_loss, heatmap_targets, regression_loss, segmentation_loss
-from posefuse_train.train_camera import TrainCameraConfig, augment, normalize, to_input
-from posefuse_train.train_point import TrainPointConfig, select_points, train_point
+from posefuse_train.train import (
+    TrainCameraConfig,
+    TrainPointConfig,
+    augment,
+    normalize,
+    select_points,
+    to_input,
+    train_point,
+)
 
 
 def test_regression_loss_is_scaled_weighted_huber():

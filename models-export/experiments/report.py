@@ -1,8 +1,13 @@
-"""Markdown for docs/RESULTS.md: our ablation beside the paper's Tables 1-3."""
+"""Markdown for docs/RESULTS.md: our ablation beside the paper's Tables 1-3.
+
+    python -m experiments.report runs/ablation/results.json --notes docs/results-analysis.md \\
+        --choices docs/results-choices.md --out docs/RESULTS.md
+
+Without --out the markdown goes to standard output."""
 
 from __future__ import annotations
 
-from .keypoints import PARTS
+from posefuse_train.keypoints import PARTS
 
 PAPER_T1 = {  # OKS@3D %, MPJPE cm, OKS@2D %
     "camera-only": (51.74, 13.90, 78.19),
@@ -25,38 +30,6 @@ PAPER_T2 = {  # per-keypoint OKS@3D %: camera, LiDAR, multi-modal
     "ankle": (62.68, 69.06, 72.30),
 }
 T1_ROWS = (("camera-only", "camera"), ("LiDAR-only", "lidar_reg_seg"), ("multi-modal", "fusion_reg_seg"))
-
-CHOICES = """\
-## Choices and deviations from the paper
-
-- Sizes for a 2-core CPU: the camera net is a narrow ResNet-18-style SimpleBaseline at the data's crop
-  size instead of ResNet-50 at 256×256, and the point net is a narrow PointNet (widths in the row
-  configs of `results.json`) instead of 64-64-128-256-1024. Training runs under a wall-clock budget:
-  the camera net gets a share of it, then the most expensive point-net row (fusion + segmentation)
-  runs under its share and fixes the number of steps every other row gets, so rows are compared at
-  equal steps.
-- The segmentation loss is averaged over points instead of summed, so that λ = 0.1 keeps the auxiliary
-  term below the regression term whatever N is.
-- The regression Huber loss is applied per coordinate (δ = 1) on errors divided by the keypoint's OKS
-  scale s_k and summed over x, y, z.
-- Label temperature: α = softmax(−T·d²) with d the 2D distance in model-input pixels divided by S
-  (T = `lift_temperature`), reliability r_k = exp(−T_r·min d²) in the same units.
-- Depth-corrected labels (beyond the paper): eq. 1 averages LiDAR returns, which lie on the body's
-  near surface, while joints are inside the body. Each pseudo label is moved away from the sensor
-  along its viewing ray by an anthropometric surface-to-joint depth (half the limb thickness of a
-  1.75 m adult, scaled by the 3D box height); the 2D projection is unchanged. No 3D keypoint is used.
-- Rotation augmentation: Tables 1-3 use ±20° about z instead of the paper's [0, 2π). Our points are
-  in the heading-aligned box frame (`rotate_by_heading`), so a full turn throws away the heading and
-  with it the front/back and left/right cue that the box gives for free. The paper's rotation is
-  reported in its own table ("Table 3 with the paper's rotation augmentation"): it costs 17 points
-  OKS@3D here, and with it the camera's features help in 2D. The heading-aligned models need a
-  heading within about ±15° (table "Wrong box headings").
-- Optimizer: SGD with Nesterov momentum 0.9, lr 0.05, 50 warm-up steps, cosine decay (the paper's
-  1e-3 is for 100k iterations; we have about a thousand). Adam at 2e-3 on the same pilot: 56.6%.
-- Persons with fewer than `min_points` points are answered by the camera-only path, as the server does.
-- The bundle takes the fusion and LiDAR-only rows with the best held-out OKS@3D, so its manifest
-  metrics carry a small selection bias (one choice among at most three rows).
-"""
 
 
 def pct(v):
@@ -331,6 +304,7 @@ def results_markdown(
     paper_recipe: list[dict] | None = None,
     heading_error: list[dict] | None = None,
     street: list[dict] | None = None,
+    choices: str | None = None,
 ) -> str:
     rows, pre, lq = s["rows"], s["preprocessing"], s["label_quality"]
     cam = rows["camera"]
@@ -407,7 +381,7 @@ def results_markdown(
             "",
             "## Wrong box headings",
             "",
-            "`python -m posefuse_train.heading_error --test TEST --models RUN:ROW,...`: every held-out "
+            "`python -m experiments.heading_error --test TEST --models RUN:ROW,...`: every held-out "
             "box's heading turned by the given error before pre-processing. L-R swaps: the share of "
             "persons predicted closer to the truth with left and right exchanged (the facing read "
             "backwards).",
@@ -419,7 +393,7 @@ def results_markdown(
             "",
             "## By range: OKS@3D / MPJPE per LiDAR range band",
             "",
-            "`python -m posefuse_train.by_range --run RUN --test TEST --rows ...` on this run's checkpoints.",
+            "`python -m experiments.by_range --run RUN --test TEST --rows ...` on this run's checkpoints.",
             "",
             by_range_table(by_range),
         ]
@@ -430,56 +404,62 @@ def results_markdown(
             "",
             f"## Camera backbones: accuracy vs CPU latency (S = {backbones['image_size']})",
             "",
-            f"Each trained for the same {backbones.get('minutes', 0):g} min budget "
-            f"(`{backbones.get('command', 'python -m posefuse_train.backbones')}`).",
+            (
+                f"Each trained for the same {backbones['minutes']:g} min budget "
+                if backbones.get("minutes")
+                else "Each trained for the epochs in the table "
+            )
+            + f"(`{backbones.get('command', 'python -m experiments.backbones')}`).",
             "",
             backbone_table(backbones),
         ]
     bundle_run = bundle_source(s, street or [])
     if bundle_run is not None:
         lines += ["", *default_bundle_section(bundle_run, main=bundle_run is s)]
-    lines += ["", CHOICES]
-    return "\n".join(lines)
+    if choices:
+        lines += ["", choices.strip()]
+    return "\n".join(lines) + "\n"
 
 
 def main(argv=None):
-    """Re-renders RESULTS.md from a finished run (e.g. to add the backbone study):
-    python -m posefuse_train.report runs/ablation/results.json --backbones runs/backbones/backbones.json \
-        --by-range runs/ablation/by_range.json --notes docs/results-analysis.md"""
+    """Renders RESULTS.md from finished runs (to standard output unless --out is given)."""
     import argparse
     import json
     from pathlib import Path
 
-    p = argparse.ArgumentParser(
-        prog="python -m posefuse_train.report", description=main.__doc__.split("\n")[0]
-    )
-    p.add_argument("results", help="results.json written by posefuse_train.ablation")
-    p.add_argument("--backbones", help="backbones.json written by posefuse_train.backbones")
-    p.add_argument("--by-range", help="JSON written by posefuse_train.by_range --json")
+    p = argparse.ArgumentParser(prog="python -m experiments.report", description=main.__doc__)
+    p.add_argument("results", help="results.json written by experiments.ablation")
+    p.add_argument("--backbones", help="backbones.json written by experiments.backbones")
+    p.add_argument("--by-range", help="JSON written by experiments.by_range --json")
     p.add_argument("--notes", help="hand-written markdown (the analysis) placed after the tables")
     p.add_argument(
         "--paper-recipe", nargs="*", default=[], help="results.json of runs with the paper's [0, 2π) rotation"
     )
-    p.add_argument("--heading-error", help="JSON written by posefuse_train.heading_error --json")
+    p.add_argument("--heading-error", help="JSON written by experiments.heading_error --json")
     p.add_argument("--street", nargs="*", default=[], help="results.json of runs on --profile street data")
-    p.add_argument("--out", default="docs/RESULTS.md")
+    p.add_argument("--choices", help="markdown placed last (docs/results-choices.md: choices and deviations)")
+    p.add_argument(
+        "--out", help="write the markdown to this file (e.g. docs/RESULTS.md) instead of printing it"
+    )
     a = p.parse_args(argv)
     summary = json.loads(Path(a.results).read_text())
     load = lambda path: json.loads(Path(path).read_text()) if path else None  # noqa: E731
-    notes = Path(a.notes).read_text() if a.notes else None
-    recipe = [load(r) for r in a.paper_recipe]
-    Path(a.out).write_text(
-        results_markdown(
-            summary,
-            load(a.backbones),
-            load(a.by_range),
-            notes,
-            recipe,
-            load(a.heading_error),
-            [load(r) for r in a.street],
-        )
+    text = lambda path: Path(path).read_text() if path else None  # noqa: E731
+    md = results_markdown(
+        summary,
+        load(a.backbones),
+        load(a.by_range),
+        text(a.notes),
+        [load(r) for r in a.paper_recipe],
+        load(a.heading_error),
+        [load(r) for r in a.street],
+        text(a.choices),
     )
-    print(f"wrote {a.out}")
+    if a.out:
+        Path(a.out).write_text(md)
+        print(f"wrote {a.out}")
+    else:
+        print(md, end="")
 
 
 if __name__ == "__main__":

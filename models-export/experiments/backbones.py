@@ -1,10 +1,13 @@
 """Camera backbone study: accuracy vs ONNX Runtime CPU latency (batch 1) at the data's crop size.
-Each candidate trains under the same wall-clock budget, then is scored on held-out crops: 2D
-keypoints decoded from its heatmaps against the exact 2D projections, and the camera-only 3D
-baseline (decode + eq. 1 over the serve points).
+Each candidate trains for its epochs (`BACKBONE:WIDTH:EPOCHS`, or --epochs), then is scored on
+held-out crops: 2D keypoints decoded from its heatmaps against the exact 2D projections, and the
+camera-only 3D baseline (decode + eq. 1 over the serve points).
 
-    python -m posefuse_train.backbones --train data/train --test data/test --minutes 4 \
-        --candidates resnet18-w16:64,resnet18-w32:128,resnet18:256 --out runs/backbones
+    python -m experiments.backbones --train data/train --test data/test \
+        --candidates resnet18-w16:64:3.7,resnet18-w32:128:1.4,resnet18:256:0.4 --out runs/backbones
+
+--minutes (opt-in) trains every candidate for the same wall-clock time instead (at most 100
+epochs); the epochs that fit then depend on the machine.
 """
 
 from __future__ import annotations
@@ -19,13 +22,13 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import data as data_mod
-from .camera_net import CameraNet
-from .config import CameraNetConfig
-from .evaluate import camera_only, evaluate
-from .export import export_onnx, measure_latency
-from .fusion import decode_heatmaps
-from .train_camera import TrainCameraConfig, predict_heatmaps, train_camera
+from posefuse_train import data as data_mod
+from posefuse_train.camera_net import CameraNet
+from posefuse_train.config import CameraNetConfig
+from posefuse_train.evaluate import camera_only, evaluate
+from posefuse_train.export import export_onnx, measure_latency
+from posefuse_train.fusion import decode_heatmaps
+from posefuse_train.train import TrainCameraConfig, predict_heatmaps, train_camera
 
 
 def pck_2d(pred_uv, data, frac: float) -> float:
@@ -44,12 +47,23 @@ def latency_of(net: CameraNet, s: int) -> float:
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m posefuse_train.backbones", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m experiments.backbones", description=__doc__.split("\n")[0])
     p.add_argument("--train", required=True)
     p.add_argument("--test", required=True)
     p.add_argument("--out", default="runs/backbones")
-    p.add_argument("--minutes", type=float, default=4.0, help="training budget per candidate")
-    p.add_argument("--candidates", default="resnet18-w16:64,resnet18-w32:128,resnet18:256")
+    p.add_argument(
+        "--candidates",
+        default="resnet18-w16:64,resnet18-w32:128,resnet18:256",
+        help="comma-separated BACKBONE:DECONV_WIDTH[:EPOCHS]",
+    )
+    p.add_argument("--epochs", type=float, default=2.0, help="epochs of a candidate that names none")
+    p.add_argument(
+        "--minutes",
+        type=float,
+        default=0.0,
+        help="opt-in: train every candidate for this wall-clock time instead (at most 100 epochs)",
+    )
+    p.add_argument("--seed", type=int, default=0)
     p.add_argument(
         "--latency-only", default="resnet50:256", help="candidates only timed (too slow to train here)"
     )
@@ -63,10 +77,12 @@ def main(argv=None):
     out.mkdir(parents=True, exist_ok=True)
     rows = []
     for cand in [c for c in a.candidates.split(",") if c]:
-        name, width = cand.split(":")
+        name, width, *epochs = cand.split(":")
+        epochs = 100.0 if a.minutes > 0 else float(epochs[0]) if epochs else a.epochs
         net_cfg = CameraNetConfig(backbone=name, deconv_channels=int(width))
         t = time.time()
-        net = train_camera(train, cfg, net_cfg, TrainCameraConfig(epochs=100, time_budget_s=a.minutes * 60))
+        train_cfg = TrainCameraConfig(epochs=epochs, time_budget_s=a.minutes * 60, seed=a.seed)
+        net = train_camera(train, cfg, net_cfg, train_cfg)
         train_s = time.time() - t
         raw = predict_heatmaps(net, test["image"], cfg)
         uv, _ = decode_heatmaps(raw, s)
@@ -88,7 +104,7 @@ def main(argv=None):
         print(json.dumps(row), flush=True)
         (out / "backbones.json").write_text(json.dumps({"image_size": s, "rows": rows}, indent=2))
     for cand in [c for c in a.latency_only.split(",") if c]:
-        name, width = cand.split(":")
+        name, width = cand.split(":")[:2]
         net = CameraNet(CameraNetConfig(backbone=name, deconv_channels=int(width)))
         row = {
             "backbone": name,
@@ -99,7 +115,7 @@ def main(argv=None):
         }
         rows.append(row)
         print(json.dumps(row), flush=True)
-    command = "python -m posefuse_train.backbones " + " ".join(argv if argv is not None else sys.argv[1:])
+    command = "python -m experiments.backbones " + " ".join(argv if argv is not None else sys.argv[1:])
     summary = {"image_size": s, "minutes": a.minutes, "command": command, "rows": rows}
     (out / "backbones.json").write_text(json.dumps(summary, indent=2))
 

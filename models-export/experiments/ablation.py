@@ -1,9 +1,13 @@
 """The paper's ablation in one command: camera-only; LiDAR-only reg / reg+seg; multi-modal reg /
 reg+seg; multi-modal reg+seg with depth-corrected pseudo labels. Trains on one simulated set,
-evaluates on another, writes docs/RESULTS.md and (with --bundle) the default bundle.
+evaluates on another; with --bundle also writes the default bundle, with --results the markdown
+report (nothing is written outside --out unless asked).
 
-    python -m posefuse_train.ablation --train data/train --test data/test --out runs/ablation \
+    python -m experiments.ablation --train data/train --test data/test --out runs/ablation \
         --bundle models/default --results docs/RESULTS.md
+
+Runs a fixed number of epochs per network, so a second run with the same arguments trains the
+same models; --budget-min (opt-in) fits the run into a wall-clock budget instead.
 """
 
 from __future__ import annotations
@@ -22,16 +26,23 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from . import __version__, evaluate, labels, report
-from . import data as data_mod
-from .config import CameraNetConfig, PointNetConfig
-from .export import camera_from_checkpoint, export_bundle, export_onnx, measure_latency
-from .fusion import smooth_heatmaps
-from .keypoints import K
-from .train_camera import TrainCameraConfig, predict_heatmaps, train_camera
-from .train_camera import checkpoint as camera_checkpoint
-from .train_point import TrainPointConfig, predict_points, train_point
-from .train_point import checkpoint as point_checkpoint
+from posefuse_train import __version__, evaluate, labels
+from posefuse_train import data as data_mod
+from posefuse_train.config import CameraNetConfig, PointNetConfig
+from posefuse_train.export import camera_from_checkpoint, export_bundle, export_onnx, measure_latency
+from posefuse_train.fusion import smoothed
+from posefuse_train.keypoints import K
+from posefuse_train.train import (
+    TrainCameraConfig,
+    TrainPointConfig,
+    checkpoint,
+    predict_heatmaps,
+    predict_points,
+    train_camera,
+    train_point,
+)
+
+from . import report
 
 # name -> (fusion, seg, depth_correction)
 ROWS = {
@@ -42,14 +53,6 @@ ROWS = {
     "fusion_reg_seg_depth": (True, True, True),
     "lidar_reg_seg_depth": (False, True, True),
 }
-
-
-def smoothed(raw: np.ndarray, cfg, batch: int = 2048) -> np.ndarray:
-    out = np.empty_like(raw)
-    for a in range(0, len(raw), batch):
-        t = torch.from_numpy(raw[a : a + batch])
-        out[a : a + batch] = smooth_heatmaps(t, cfg.smoothing_kernel, cfg.smoothing_sigma).numpy()
-    return out
 
 
 def label_quality(lab: dict, d: dict) -> dict:
@@ -68,7 +71,7 @@ def degrade_lidar(train: dict, test: dict, sigma: float, seed: int = 0) -> None:
 
 
 def main(argv=None):
-    p = argparse.ArgumentParser(prog="python -m posefuse_train.ablation", description=__doc__.split("\n")[0])
+    p = argparse.ArgumentParser(prog="python -m experiments.ablation", description=__doc__.split("\n")[0])
     p.add_argument("--train", required=True)
     p.add_argument("--test", required=True)
     p.add_argument("--out", default="runs/ablation")
@@ -76,10 +79,10 @@ def main(argv=None):
     p.add_argument(
         "--bundle-version", default=__version__, help="the bundle's version, which every response names"
     )
-    p.add_argument("--results", default="docs/RESULTS.md", help="markdown report ('' to skip)")
     p.add_argument(
-        "--backbones", help="backbones.json of `posefuse_train.backbones` to include in the report"
+        "--results", default="", help="also write the markdown report to this file (e.g. docs/RESULTS.md)"
     )
+    p.add_argument("--backbones", help="backbones.json of `experiments.backbones` to include in the report")
     p.add_argument("--rows", default=",".join(ROWS), help="comma-separated subset of " + ",".join(ROWS))
     p.add_argument("--limit-train", type=int)
     p.add_argument("--limit-test", type=int)
@@ -88,7 +91,12 @@ def main(argv=None):
     p.add_argument("--camera-epochs", type=float, default=TrainCameraConfig.epochs)
     p.add_argument("--camera-lr", type=float, default=TrainCameraConfig.lr)
     p.add_argument("--camera-checkpoint", help="reuse a trained camera net instead of training one")
-    p.add_argument("--point-epochs", type=float, default=TrainPointConfig.epochs)
+    p.add_argument(
+        "--point-epochs",
+        type=float,
+        default=8.0,
+        help="epochs of every point-net row (docs/RESULTS.md's runs: 7.95)",
+    )
     p.add_argument("--point-lr", type=float, default=TrainPointConfig.lr)
     p.add_argument("--point-optimizer", default=TrainPointConfig.optimizer, choices=["sgd", "adam"])
     p.add_argument("--rotate-deg", type=float, default=TrainPointConfig.rotate_deg)
@@ -104,8 +112,10 @@ def main(argv=None):
     p.add_argument(
         "--budget-min",
         type=float,
-        default=55.0,
-        help="wall-clock budget of the whole run (minutes); 0 = train for the given epochs",
+        default=0.0,
+        help="opt-in wall-clock budget of the whole run (minutes): the camera net gets --camera-share of "
+        "it and the point rows the rest, so the epochs run depend on the machine; 0 (default): train "
+        "for the given epochs",
     )
     p.add_argument(
         "--camera-share", type=float, default=0.25, help="share of the training budget for the camera net"
@@ -193,7 +203,7 @@ def main(argv=None):
     else:
         net_cfg = CameraNetConfig(backbone=a.backbone, deconv_channels=a.deconv_channels)
         camera = train_camera(train, cfg, net_cfg, cam_cfg, a.device, log=log)
-        torch.save(camera_checkpoint(camera, cfg, cam_cfg, str(a.train)), out / "camera.pt")
+        torch.save(checkpoint(camera, cfg, cam_cfg, str(a.train)), out / "camera.pt")
     timings["camera_train_s"] = time.time() - t
     t = time.time()
     raw_train = predict_heatmaps(camera, train["image"], cfg, a.device)
@@ -230,9 +240,10 @@ def main(argv=None):
         f"ORT {cam_latency:.2f} ms"
     )
 
-    # point networks. Every row gets the same number of steps: the most expensive row present
-    # (fusion + seg) runs first under the time budget and fixes the count for the others, which
-    # are capped at 1.3x the budget in case the shared CPU gets busier.
+    # point networks. Every row gets the same number of steps, the first row's (--point-epochs).
+    # Under the opt-in budget the most expensive row present (fusion + seg) runs first under its
+    # share and fixes the count for the others, which are capped at 1.3x the budget in case the
+    # shared CPU gets busier.
     if a.budget_min > 0:
         row_budget = max(30.0, (a.budget_min * 60 - 120 - (time.time() - t_start)) / max(1, len(rows)))
     nets, epochs, steps = {}, a.point_epochs, 0
@@ -276,7 +287,7 @@ def main(argv=None):
             "steps": len(net.loss_history),
         }
         nets[name] = net
-        torch.save(point_checkpoint(net, cfg, pcfg, str(a.train)), out / f"{name}.pt")
+        torch.save(checkpoint(net, cfg, pcfg, str(a.train)), out / f"{name}.pt")
         log(
             f"{name}: OKS@3D {metrics['oks_acc_3d']:.4f} MPJPE {metrics['mpjpe_3d_m']:.4f} "
             f"OKS@2D {metrics['oks_acc_2d']:.4f} ({train_s:.0f}s)"
@@ -286,7 +297,7 @@ def main(argv=None):
     results = {k: results[k] for k in ["camera", *ROWS] if k in results}
     wall = time.time() - t_start
     summary = {
-        "command": "python -m posefuse_train.ablation "
+        "command": "python -m experiments.ablation "
         + " ".join(shlex.quote(x) for x in (argv or sys.argv[1:])),
         "wall_s": wall,
         "timings": timings,

@@ -3,7 +3,7 @@ heading-aligned box frame (±20° rotation) take the body's facing from the box;
 ([0, 2π) rotation) has to read it from the points (and the camera). A perception stack's boxes
 carry detector headings, so this is what serving with either kind costs when they are off.
 
-    python -m posefuse_train.heading_error --test data/test --errors 0,15,45,90,180 \\
+    python -m experiments.heading_error --test data/test --errors 0,15,45,90,180 \\
         --models runs/ablation:lidar_reg_seg,runs/ablation:fusion_reg_seg,runs/rot180:lidar_reg_seg
 """
 
@@ -15,10 +15,11 @@ from pathlib import Path
 
 import numpy as np
 
-from . import data as data_mod
-from . import evaluate
-from .by_range import run_heatmaps, run_predictions
+from posefuse_train import data as data_mod
+from posefuse_train import evaluate
+
 from .report import heading_error_table
+from .runs import run_heatmaps, run_predictions
 
 
 def with_heading_error(test: dict, error_rad: float) -> dict:
@@ -38,7 +39,7 @@ def with_heading_error(test: dict, error_rad: float) -> dict:
 
 def main(argv=None):
     p = argparse.ArgumentParser(
-        prog="python -m posefuse_train.heading_error", description=__doc__.split("\n")[0]
+        prog="python -m experiments.heading_error", description=__doc__.split("\n")[0]
     )
     p.add_argument("--test", required=True)
     p.add_argument("--models", required=True, help="comma-separated RUN_DIR:ROW (an ablation's checkpoints)")

@@ -1,0 +1,1 @@
+"""Tools around the trainer's library: evaluating an exported bundle the way the server does."""
