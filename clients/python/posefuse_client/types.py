@@ -231,6 +231,15 @@ class ErrorInfo:
 
 
 @dataclass
+class Facing:
+    """Which way the body faces: yaw about z in the vehicle frame, radians (0 faces +x, pi/2
+    faces +y), and a 0..1 confidence (from the predicted shoulders and hips)."""
+
+    yaw: float
+    confidence: float
+
+
+@dataclass
 class PersonPose:
     """One person's pose.
 
@@ -248,6 +257,7 @@ class PersonPose:
     keypoints_2d: np.ndarray
     scores: np.ndarray
     box_2d: Box2d | None = None
+    facing: Facing | None = None
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> PersonPose:
@@ -265,6 +275,7 @@ class PersonPose:
                                   dtype=np.float64).reshape(-1, 2),
             scores=np.array([k["score"] if k.get("score") is not None else nan for k in kps], dtype=np.float64),
             box_2d=Box2d.from_json(d["box_2d"]) if d.get("box_2d") is not None else None,
+            facing=Facing(float(d["facing"]["yaw"]), float(d["facing"]["confidence"])) if d.get("facing") else None,
         )
 
     @classmethod
@@ -280,6 +291,7 @@ class PersonPose:
             keypoints_3d=np.array([(k.x, k.y, k.z) for k in kps], dtype=np.float64).reshape(-1, 3),
             keypoints_2d=np.array([(k.u, k.v) for k in kps], dtype=np.float64).reshape(-1, 2),
             scores=np.array([k.score for k in kps], dtype=np.float64),
+            facing=Facing(p.facing.yaw, p.facing.confidence) if p.HasField("facing") else None,
         )
 
 
