@@ -85,3 +85,28 @@ impl PipelineConfig {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn each_inconsistent_setting_is_refused_on_its_own() {
+        let ok = PipelineConfig::default();
+        assert_eq!(ok.validate(), Ok(()));
+        let bad = [
+            PipelineConfig { heatmap_size: 0, ..ok.clone() },
+            PipelineConfig { heatmap_size: 48, ..ok.clone() },
+            PipelineConfig { smoothing_kernel: 6, ..ok.clone() },
+            PipelineConfig { num_points: 0, ..ok.clone() },
+            PipelineConfig { smoothing_sigma: 0.0, ..ok.clone() },
+            PipelineConfig { std: [0.2, 0.0, 0.2], ..ok.clone() },
+            PipelineConfig { crop_scale: 0.9, ..ok.clone() },
+            PipelineConfig { lift_temperature: 0.0, ..ok.clone() },
+            PipelineConfig { lift_temperature: f64::NAN, ..ok.clone() },
+        ];
+        for (i, cfg) in bad.iter().enumerate() {
+            assert!(cfg.validate().is_err(), "case {i} accepted: {cfg:?}");
+        }
+    }
+}

@@ -171,9 +171,19 @@ mod tests {
         let cfg = PipelineConfig::default();
         let b = person_box();
         // heading 90°: the box's length (0.6) runs along vehicle y, its width (0.8) along x.
-        let pts = [[10.35, 2.0, 0.9], [10.0, 2.4, 0.9], [10.0, 2.5, 0.9], [10.0, 2.0, 1.9], [10.0, 2.0, 1.96]];
+        // in; in the margin along its length; out; in the top margin; out above; out beside its
+        // width; in the bottom margin (below the ground plane of the box)
+        let pts = [
+            [10.35, 2.0, 0.9],
+            [10.0, 2.4, 0.9],
+            [10.0, 2.5, 0.9],
+            [10.0, 2.0, 1.9],
+            [10.0, 2.0, 1.96],
+            [10.6, 2.0, 0.9],
+            [10.0, 2.0, -0.05],
+        ];
         let pp = gather_points(&pts, &b, &cfg);
-        assert_eq!(pp.vehicle, vec![pts[0], pts[1], pts[3]]);
+        assert_eq!(pp.vehicle, vec![pts[0], pts[1], pts[3], pts[6]]);
         // local: x along heading (vehicle +y), y to the left of it (vehicle −x)
         let l = pp.local[0];
         assert!((l[0] - 0.0).abs() < 1e-6 && (l[1] + 0.35).abs() < 1e-6 && l[2].abs() < 1e-6);
