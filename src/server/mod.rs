@@ -7,6 +7,7 @@ pub mod eval;
 pub mod grpc;
 pub mod health;
 pub mod http;
+pub mod kserve;
 pub mod metrics;
 pub mod predict;
 
