@@ -57,6 +57,28 @@ impl IntoResponse for Error {
     }
 }
 
+/// HTTP status of an error on the Open Inference Protocol routes (`/v2`): as [`http_status`],
+/// except that an invalid field (a tensor) is 400, the status the protocol gives a bad request.
+pub fn v2_http_status(e: &Error) -> StatusCode {
+    match http_status(e) {
+        StatusCode::UNPROCESSABLE_ENTITY => StatusCode::BAD_REQUEST,
+        status => status,
+    }
+}
+
+/// An error as the Open Inference Protocol's REST body: `{"error": "<message naming the field>"}`.
+pub fn v2_response(e: &Error) -> Response {
+    let status = v2_http_status(e);
+    if status.is_server_error() {
+        tracing::error!(code = e.code(), "{e}");
+    }
+    let mut resp = (status, axum::Json(serde_json::json!({ "error": e.to_string() }))).into_response();
+    if matches!(e, Error::Overloaded) {
+        resp.headers_mut().insert(axum::http::header::RETRY_AFTER, axum::http::HeaderValue::from_static("1"));
+    }
+    resp
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -81,6 +103,9 @@ mod tests {
             assert_eq!(http_status(&e).as_u16(), http, "{e}");
             assert_eq!(grpc_code(&e), grpc, "{e}");
         }
+        assert_eq!(v2_http_status(&Error::field("points", "bad shape")).as_u16(), 400);
+        assert_eq!(v2_http_status(&Error::NotFound("model".into())).as_u16(), 404);
+        assert_eq!(v2_http_status(&Error::Overloaded).as_u16(), 429);
         let d = detail(&Error::field("points", "empty"));
         assert_eq!((d.code.as_str(), d.field.as_deref()), ("invalid_field", Some("points")));
         assert!(d.message.contains("points"));

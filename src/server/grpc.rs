@@ -22,12 +22,15 @@ pub mod proto {
 use proto::posefuse_server::{Posefuse, PosefuseServer};
 use tonic_health::pb::health_server::{Health, HealthServer};
 
-/// The gRPC routes: the Posefuse service (with the body limit) and health checking.
+/// The gRPC routes: the Posefuse service (with the body limit), health checking and the Open
+/// Inference Protocol's `inference.GRPCInferenceService`.
 pub fn router<H: Health>(state: AppState, health: HealthServer<H>) -> axum::Router {
     let limit = state.body_limit;
+    let kserve = super::kserve::grpc::service(state.clone());
     let svc = PosefuseServer::new(GrpcService { state }).max_decoding_message_size(limit);
     tonic::service::Routes::new(svc)
         .add_service(health)
+        .add_service(kserve)
         .prepare()
         .into_axum_router()
         .layer(axum::middleware::map_response(too_large_is_resource_exhausted))

@@ -35,6 +35,7 @@ pub fn router(state: AppState) -> Router {
         .route("/metrics", get(metrics_text))
         .route("/openapi.json", get(openapi))
         .merge(super::viewer::routes())
+        .merge(super::kserve::rest::routes())
         .fallback(not_found)
         .layer(axum::middleware::from_fn(count_requests))
         .layer(axum::extract::DefaultBodyLimit::max(limit))

@@ -6,6 +6,7 @@ pub mod errors;
 pub mod grpc;
 pub mod health;
 pub mod http;
+pub mod kserve;
 pub mod metrics;
 pub mod viewer;
 
