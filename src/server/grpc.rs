@@ -209,8 +209,11 @@ impl Posefuse for GrpcService {
     ) -> std::result::Result<Response<Self::PredictStreamStream>, Status> {
         let state = self.state.clone();
         let concurrency = state.batch_concurrency;
-        let out = request
-            .into_inner()
+        // On drain the messages already read finish, then the stream ends with UNAVAILABLE.
+        let input = super::lifecycle::end_on_drain(request.into_inner(), state.drain.clone(), || {
+            Err(Status::unavailable("the server is shutting down: no further messages are read"))
+        });
+        let out = input
             .enumerate()
             .map(move |(i, msg)| {
                 let state = state.clone();

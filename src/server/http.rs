@@ -33,6 +33,7 @@ pub fn router(state: AppState) -> Router {
         .route("/healthz", get(healthz))
         .route("/readyz", get(readyz))
         .route("/v1/models", get(models))
+        .route("/v1/models:reload", post(super::reload::reload))
         .route("/metrics", get(metrics_text))
         .route("/openapi.json", get(openapi))
         .fallback(not_found)
@@ -189,7 +190,11 @@ async fn batch(State(state): State<AppState>, req: Request) -> Response {
 fn ndjson_batch(state: AppState, body: Body) -> Response {
     let limit = state.body_limit;
     let concurrency = state.batch_concurrency;
-    let lines = ndjson_lines(body.into_data_stream(), limit);
+    // On drain the lines already read finish; one last item says no more are read.
+    let lines =
+        super::lifecycle::end_on_drain(ndjson_lines(body.into_data_stream(), limit), state.drain.clone(), || {
+            Err(Error::Unavailable("the server is shutting down: no further lines are read".into()))
+        });
     let out = lines
         .enumerate()
         .map(move |(i, line)| {
@@ -364,7 +369,7 @@ async fn metrics_text(State(state): State<AppState>) -> Response {
 #[derive(utoipa::OpenApi)]
 #[openapi(
     info(title = "posefuse", description = "Multi-modal (camera + LiDAR) 3D pedestrian pose estimation"),
-    paths(poses, batch, evaluate, healthz, readyz, models, metrics_text, openapi)
+    paths(poses, batch, evaluate, healthz, readyz, models, super::reload::reload, metrics_text, openapi)
 )]
 struct ApiDoc;
 

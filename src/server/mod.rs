@@ -1,14 +1,19 @@
 //! HTTP (axum) and gRPC (tonic) front ends on one port, and the CLI commands that share their
 //! code path (`Predictor`).
 
+pub mod admission;
 pub mod api;
+pub mod conn;
 pub mod errors;
 pub mod eval;
 pub mod grpc;
 pub mod health;
 pub mod http;
+pub mod lifecycle;
+pub mod limits;
 pub mod metrics;
 pub mod predict;
+pub mod reload;
 
 use std::future::Future;
 use std::net::SocketAddr;
@@ -18,6 +23,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use axum::extract::Request;
+use tokio_util::sync::CancellationToken;
 use tower::ServiceExt;
 
 use crate::error::{Error, Result};
@@ -85,6 +91,33 @@ pub struct ServeArgs {
     /// Log as JSON lines instead of text.
     #[arg(long, env = "POSEFUSE_LOG_JSON")]
     pub log_json: bool,
+    /// Seconds the drain may take after SIGTERM (once the listener closes); then the process
+    /// exits anyway, logging what was cut.
+    #[arg(long, env = "POSEFUSE_DRAIN_TIMEOUT", default_value_t = 30)]
+    pub drain_timeout: u64,
+    /// Milliseconds the listener keeps accepting after SIGTERM while readiness already says 503
+    /// (time for a load balancer to notice).
+    #[arg(long, env = "POSEFUSE_DRAIN_DELAY_MS", default_value_t = 0)]
+    pub drain_delay_ms: u64,
+    /// Milliseconds a client has to send a request's headers (HTTP/1).
+    #[arg(long, env = "POSEFUSE_HEADER_TIMEOUT_MS", default_value_t = 10_000)]
+    pub header_timeout_ms: u64,
+    /// Longest pause, in milliseconds, between two chunks of a request body.
+    #[arg(long, env = "POSEFUSE_BODY_TIMEOUT_MS", default_value_t = 30_000)]
+    pub body_timeout_ms: u64,
+    /// Milliseconds without a byte in either direction after which a connection is closed.
+    #[arg(long, env = "POSEFUSE_IDLE_TIMEOUT_MS", default_value_t = 60_000)]
+    pub idle_timeout_ms: u64,
+    /// Open connections at most (0: the file-descriptor limit less a reserve). At the cap the
+    /// connection idle the longest is closed; when none is idle, new ones are closed at once.
+    #[arg(long, env = "POSEFUSE_MAX_CONNECTIONS", default_value_t = 0)]
+    pub max_connections: usize,
+    /// Frames decoded and pre-processed at once (0: one per core).
+    #[arg(long, env = "POSEFUSE_DECODE_PERMITS", default_value_t = 0)]
+    pub decode_permits: usize,
+    /// Requests that may wait for a decode permit; beyond, 429 at once (0: 8 per permit).
+    #[arg(long, env = "POSEFUSE_ADMISSION_QUEUE", default_value_t = 0)]
+    pub admission_queue: usize,
 }
 
 /// Arguments of `posefuse predict`.
@@ -140,6 +173,16 @@ pub struct ServerConfig {
     pub body_limit: usize,
     pub request_timeout: Duration,
     pub batch_concurrency: usize,
+    /// How long the drain may take once the listener closes.
+    pub drain_timeout: Duration,
+    /// How long the listener keeps accepting after the shutdown signal (readiness already 503).
+    pub drain_delay: Duration,
+    /// Timeouts and the connection cap.
+    pub conn: conn::ConnLimits,
+    /// Frames decoded and pre-processed at once.
+    pub decode_permits: usize,
+    /// Requests that may wait for a decode permit before 429.
+    pub admission_queue: usize,
 }
 
 impl ServerConfig {
@@ -151,6 +194,11 @@ impl ServerConfig {
             body_limit: 32 * 1024 * 1024,
             request_timeout: Duration::from_secs(10),
             batch_concurrency: 8,
+            drain_timeout: Duration::from_secs(30),
+            drain_delay: Duration::ZERO,
+            conn: conn::ConnLimits::default(),
+            decode_permits: 2,
+            admission_queue: 64,
         }
     }
 }
@@ -163,6 +211,10 @@ pub struct AppState {
     pub request_timeout: Duration,
     pub batch_concurrency: usize,
     pub shutting_down: Arc<AtomicBool>,
+    /// Cancelled when the drain starts (the listener closes): streams stop reading input.
+    pub drain: CancellationToken,
+    /// Swaps bundles while serving.
+    pub reloader: Arc<reload::Reloader>,
     /// Warm-up done and the gRPC health status published (what /readyz reports).
     pub ready: Arc<AtomicBool>,
     pub prometheus: Option<metrics_exporter_prometheus::PrometheusHandle>,
@@ -171,6 +223,9 @@ pub struct AppState {
 /// A loaded server: bundle validated, sessions built, warm-up under way.
 pub struct App {
     state: AppState,
+    drain_timeout: Duration,
+    drain_delay: Duration,
+    conn: conn::ConnLimits,
 }
 
 /// Loads the bundle and starts the runtime (blocking: builds sessions).
@@ -188,16 +243,31 @@ impl App {
     /// Validates the bundle, builds the sessions and starts warming up (blocking).
     pub fn start(config: &ServerConfig) -> Result<App> {
         let runtime = load_runtime(&config.model_dir, &config.runtime)?;
+        let admission = admission::Admission::new(config.decode_permits, config.admission_queue);
+        let predictor = Predictor::with_admission(runtime, admission);
+        let reloader = reload::Reloader::new(predictor.clone(), config.model_dir.clone(), config.runtime.clone());
         let state = AppState {
-            predictor: Predictor::new(runtime),
+            predictor,
             body_limit: config.body_limit,
             request_timeout: config.request_timeout,
             batch_concurrency: config.batch_concurrency.max(1),
             shutting_down: Arc::new(AtomicBool::new(false)),
+            drain: CancellationToken::new(),
+            reloader: Arc::new(reloader),
             ready: Arc::new(AtomicBool::new(false)),
             prometheus: metrics::install(),
         };
-        Ok(App { state })
+        Ok(App {
+            state,
+            drain_timeout: config.drain_timeout,
+            drain_delay: config.drain_delay,
+            conn: config.conn.clone(),
+        })
+    }
+
+    /// Swaps bundles while serving (`POST /v1/models:reload`, SIGHUP).
+    pub fn reloader(&self) -> &Arc<reload::Reloader> {
+        &self.state.reloader
     }
 
     /// The predictor (runtime access for tests and tools).
@@ -205,7 +275,10 @@ impl App {
         &self.state.predictor
     }
 
-    /// Serves on `listener` until `shutdown` completes, then finishes in-flight requests.
+    /// Serves on `listener` until `shutdown` completes, then drains: readiness goes 503 /
+    /// NOT_SERVING at once, the listener keeps accepting for the drain delay, then closes;
+    /// requests in hand finish, streams stop reading, and after the drain timeout whatever is
+    /// left is cut (logged). Returns Ok in every case of a completed drain.
     pub async fn serve(
         self,
         listener: tokio::net::TcpListener,
@@ -220,16 +293,19 @@ impl App {
         let http_router = http::router(state.clone());
         let grpc_router = grpc::router(state.clone(), health_service);
         // One port: `Content-Type: application/grpc…` goes to tonic, everything else to the HTTP routes.
-        let app = axum::Router::new().fallback_service(tower::service_fn(move |req: Request| {
-            let (h, g) = (http_router.clone(), grpc_router.clone());
-            async move {
-                if is_grpc(&req) {
-                    g.oneshot(req).await
-                } else {
-                    h.oneshot(req).await
+        let in_flight = Arc::new(lifecycle::InFlight::default());
+        let app = axum::Router::new()
+            .fallback_service(tower::service_fn(move |req: Request| {
+                let (h, g) = (http_router.clone(), grpc_router.clone());
+                async move {
+                    if is_grpc(&req) {
+                        g.oneshot(req).await
+                    } else {
+                        h.oneshot(req).await
+                    }
                 }
-            }
-        }));
+            }))
+            .layer(axum::middleware::from_fn_with_state(in_flight.clone(), lifecycle::count_in_flight));
         let ready_watch = {
             let (runtime, reporter, ready) = (state.predictor.runtime().clone(), reporter.clone(), state.ready.clone());
             tokio::spawn(async move {
@@ -244,31 +320,48 @@ impl App {
             })
         };
         let flag = state.shutting_down.clone();
+        let drain = state.drain.clone();
+        let delay = self.drain_delay;
         let on_shutdown = {
             let reporter = reporter.clone();
+            let drain = drain.clone();
             async move {
                 shutdown.await;
                 flag.store(true, Ordering::SeqCst);
-                tracing::info!("shutting down: finishing in-flight requests");
                 reporter.set_service_status("", tonic_health::ServingStatus::NotServing).await;
                 reporter.set_service_status(grpc_name, tonic_health::ServingStatus::NotServing).await;
+                tracing::info!(drain_delay_ms = delay.as_millis() as u64, "shutting down: readiness is 503");
+                tokio::time::sleep(delay).await;
+                tracing::info!("draining: listener closed, finishing in-flight requests, streams told to end");
+                drain.cancel();
             }
         };
         let addr = listener.local_addr().ok();
-        tracing::info!(?addr, "serving HTTP and gRPC");
-        // Responses go out as several small writes (headers, body, gRPC trailers); Nagle's
-        // algorithm would hold them back for the peer's delayed ACK (~40 ms).
-        let listener = axum::serve::ListenerExt::tap_io(listener, |tcp: &mut tokio::net::TcpStream| {
-            let _ = tcp.set_nodelay(true);
-        });
-        let served = axum::serve(listener, app).with_graceful_shutdown(on_shutdown).await;
+        let mut limits = self.conn.clone();
+        if limits.max_connections == 0 {
+            limits.max_connections = conn::default_max_connections(conn::raise_fd_limit());
+        }
+        tracing::info!(?addr, max_connections = limits.max_connections, "serving HTTP and gRPC");
+        let registry = Arc::new(conn::Registry::default());
+        let (_, report) =
+            tokio::join!(on_shutdown, conn::serve(listener, app, limits, registry, drain.clone(), self.drain_timeout));
+        let cut_requests = in_flight.get();
+        if report.connections_cut > 0 || cut_requests > 0 {
+            tracing::warn!(
+                connections = report.connections_cut,
+                requests = cut_requests,
+                "drain deadline passed: cut what was still open"
+            );
+        } else {
+            tracing::info!("drained: every connection finished");
+        }
         ready_watch.abort();
         let runtime = state.predictor.runtime().clone();
         drop(state);
         drop(self);
         // Joining the workers blocks; keep it off the executor.
         let _ = tokio::task::spawn_blocking(move || drop(runtime)).await;
-        served.map_err(|e| Error::Io(format!("server: {e}")))
+        Ok(())
     }
 }
 
@@ -294,26 +387,7 @@ pub async fn run(
 
 /// Completes on SIGTERM or Ctrl-C.
 pub async fn shutdown_signal() {
-    let ctrl_c = async {
-        if tokio::signal::ctrl_c().await.is_err() {
-            std::future::pending::<()>().await;
-        }
-    };
-    #[cfg(unix)]
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-            }
-            Err(_) => std::future::pending::<()>().await,
-        }
-    };
-    #[cfg(not(unix))]
-    let term = std::future::pending::<()>();
-    tokio::select! {
-        _ = ctrl_c => {},
-        _ = term => {},
-    }
+    lifecycle::terminate().await
 }
 
 fn init_tracing(json: bool) {
@@ -338,14 +412,52 @@ pub fn serve_command(a: ServeArgs) -> anyhow::Result<()> {
         body_limit: a.body_limit,
         request_timeout: Duration::from_millis(a.request_timeout_ms),
         batch_concurrency: a.batch_concurrency,
+        drain_timeout: Duration::from_secs(a.drain_timeout),
+        drain_delay: Duration::from_millis(a.drain_delay_ms),
+        conn: conn::ConnLimits {
+            header_read_timeout: Duration::from_millis(a.header_timeout_ms),
+            body_read_timeout: Duration::from_millis(a.body_timeout_ms),
+            idle_timeout: Duration::from_millis(a.idle_timeout_ms),
+            max_connections: a.max_connections,
+        },
+        decode_permits: a.decode_permits,
+        admission_queue: a.admission_queue,
     };
-    tokio_runtime()?.block_on(async move {
-        let listener = tokio::net::TcpListener::bind(a.addr)
-            .await
-            .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", a.addr))?;
-        run(config, listener, shutdown_signal()).await?;
-        Ok(())
-    })
+    tokio_runtime()?.block_on(serve_with_signals(config, a.addr))
+}
+
+/// `posefuse serve` after parsing: SIGHUP reloads (handled before loading, so that an early one
+/// does not kill the process), SIGTERM/Ctrl-C drains; a completed drain exits 0.
+pub async fn serve_with_signals(mut config: ServerConfig, addr: SocketAddr) -> anyhow::Result<()> {
+    let (set_reloader, reloader) = tokio::sync::watch::channel(None);
+    #[cfg(unix)]
+    lifecycle::reload_on_hangup(reloader)?;
+    #[cfg(not(unix))]
+    drop(reloader);
+    let sizing = admission::Sizing::detect();
+    if config.decode_permits == 0 {
+        config.decode_permits = sizing.decode_permits;
+    }
+    if config.admission_queue == 0 {
+        config.admission_queue = 8 * config.decode_permits;
+    }
+    tracing::info!(
+        cores = sizing.cores,
+        workers = config.runtime.workers,
+        intra_threads = config.runtime.intra_threads,
+        batch_wait_us = config.runtime.batch_wait.as_micros() as u64,
+        decode_permits = config.decode_permits,
+        admission_queue = config.admission_queue,
+        "sizing"
+    );
+    let listener =
+        tokio::net::TcpListener::bind(addr).await.map_err(|e| anyhow::anyhow!("cannot listen on {addr}: {e}"))?;
+    let app = tokio::task::spawn_blocking(move || App::start(&config))
+        .await
+        .map_err(|e| Error::Runtime(format!("start-up task failed: {e}")))??;
+    let _ = set_reloader.send(Some(app.reloader().clone()));
+    app.serve(listener, shutdown_signal()).await?;
+    Ok(())
 }
 
 /// Starts the runtime for a CLI command and waits for warm-up.
