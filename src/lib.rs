@@ -4,6 +4,7 @@
 
 pub mod error;
 pub mod frame;
+mod frame_points;
 pub mod geometry;
 pub mod keypoints;
 pub mod metrics;

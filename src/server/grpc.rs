@@ -32,6 +32,22 @@ pub fn router<H: Health>(state: AppState, health: HealthServer<H>) -> axum::Rout
         .prepare()
         .into_axum_router()
         .layer(axum::middleware::map_response(too_large_is_resource_exhausted))
+        .layer(axum::middleware::map_response(undecodable_is_invalid_argument))
+}
+
+/// tonic reports a message that is not valid protobuf as INTERNAL; it is the client's error.
+async fn undecodable_is_invalid_argument(mut resp: axum::response::Response) -> axum::response::Response {
+    let h = resp.headers();
+    let internal = h.get("grpc-status").is_some_and(|v| v == "13");
+    let undecodable = h.get("grpc-message").and_then(|v| v.to_str().ok()).is_some_and(is_decode_error);
+    if internal && undecodable {
+        resp.headers_mut().insert("grpc-status", axum::http::HeaderValue::from_static("3"));
+    }
+    resp
+}
+
+fn is_decode_error(message: &str) -> bool {
+    message.contains("decode Protobuf") || message.contains("decode%20Protobuf")
 }
 
 /// tonic reports an over-limit message as OUT_OF_RANGE; the API promises RESOURCE_EXHAUSTED
@@ -223,6 +239,9 @@ impl Posefuse for GrpcService {
                         // The stream cannot go on after a framing error; end it with the cause.
                         Err(s) if s.code() == tonic::Code::OutOfRange => {
                             return Err(Status::resource_exhausted(s.message().to_string()))
+                        }
+                        Err(s) if s.code() == tonic::Code::Internal && is_decode_error(s.message()) => {
+                            return Err(Status::invalid_argument(s.message().to_string()))
                         }
                         Err(s) => return Err(s),
                     };

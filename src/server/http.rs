@@ -37,6 +37,7 @@ pub fn router(state: AppState) -> Router {
         .route("/metrics", get(metrics_text))
         .route("/openapi.json", get(openapi))
         .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed)
         .layer(axum::middleware::from_fn(count_requests))
         .layer(axum::extract::DefaultBodyLimit::max(limit))
         .with_state(state)
@@ -51,6 +52,13 @@ async fn count_requests(req: Request, next: Next) -> Response {
     resp
 }
 
+async fn method_not_allowed(req: Request) -> Response {
+    let e = Error::Malformed(format!("method {} is not allowed on {}", req.method(), req.uri().path()));
+    let mut resp = e.into_response();
+    *resp.status_mut() = StatusCode::METHOD_NOT_ALLOWED;
+    resp
+}
+
 async fn not_found(req: Request) -> Error {
     Error::NotFound(format!("no route for {} {}", req.method(), req.uri().path()))
 }
@@ -59,14 +67,27 @@ async fn not_found(req: Request) -> Error {
 /// (413 over the limit, 400 for syntax, 422 naming the field for missing or mistyped fields).
 pub struct ApiJson<T>(pub T);
 
-impl<T: DeserializeOwned> FromRequest<AppState> for ApiJson<T> {
+impl<T: DeserializeOwned + Send + 'static> FromRequest<AppState> for ApiJson<T> {
     type Rejection = Error;
 
     async fn from_request(req: Request, state: &AppState) -> Result<Self> {
         check_json_content_type(req.headers())?;
         let bytes = Bytes::from_request(req, state).await.map_err(|r| bytes_rejection(&r, state.body_limit))?;
-        parse_json(&bytes).map(ApiJson)
+        parse_json_off_executor(bytes).await.map(ApiJson)
     }
+}
+
+/// Bodies larger than this are parsed on the blocking pool, so that large requests do not hold
+/// the async threads (and with them health checks and other clients).
+const PARSE_ON_EXECUTOR_MAX: usize = 64 * 1024;
+
+async fn parse_json_off_executor<T: DeserializeOwned + Send + 'static>(bytes: Bytes) -> Result<T> {
+    if bytes.len() <= PARSE_ON_EXECUTOR_MAX {
+        return parse_json(&bytes);
+    }
+    tokio::task::spawn_blocking(move || parse_json(&bytes))
+        .await
+        .map_err(|e| Error::Runtime(format!("parse task failed: {e}")))?
 }
 
 fn bytes_rejection(r: &axum::extract::rejection::BytesRejection, limit: usize) -> Error {
@@ -88,7 +109,17 @@ fn check_json_content_type(headers: &HeaderMap) -> Result<()> {
 /// Parses JSON, naming the field of a data error by its path (`persons[0].box_3d.height`).
 pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T> {
     let mut de = serde_json::Deserializer::from_slice(bytes);
-    let value = serde_path_to_error::deserialize(&mut de).map_err(path_error)?;
+    let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        // serde_json reports some type errors (a number for an enum, a 4-number array for a
+        // 3-number one) as syntax errors; in well-formed JSON they are the field's fault.
+        let well_formed = serde_json::from_slice::<serde::de::IgnoredAny>(bytes).is_ok();
+        if well_formed && e.inner().classify() != serde_json::error::Category::Data {
+            let path = e.path().to_string();
+            let field = if path == "." || path.is_empty() { "body".to_string() } else { path };
+            return Error::field(field, e.into_inner().to_string());
+        }
+        path_error(e)
+    })?;
     de.end().map_err(|e| Error::Malformed(format!("invalid JSON: {e}")))?;
     Ok(value)
 }
@@ -155,6 +186,7 @@ async fn poses(State(state): State<AppState>, ApiJson(frame): ApiJson<Frame>) ->
     (status = 200, description = "One item per frame, in order", body = Vec<BatchItem>),
     (status = 400, description = "Malformed JSON", body = ErrorBody),
     (status = 413, description = "Body over the limit", body = ErrorBody),
+    (status = 422, description = "The body is not an array of frames", body = ErrorBody),
 ))]
 async fn batch(State(state): State<AppState>, req: Request) -> Response {
     let is_ndjson = req
@@ -165,7 +197,7 @@ async fn batch(State(state): State<AppState>, req: Request) -> Response {
     if is_ndjson {
         return ndjson_batch(state, req.into_body());
     }
-    let values: Vec<serde_json::Value> = match ApiJson::from_request(req, &state).await {
+    let values: Vec<Box<serde_json::value::RawValue>> = match ApiJson::from_request(req, &state).await {
         Ok(ApiJson(v)) => v,
         Err(e) => return e.into_response(),
     };
@@ -174,7 +206,7 @@ async fn batch(State(state): State<AppState>, req: Request) -> Response {
         .map(|(i, v)| {
             let state = state.clone();
             async move {
-                let r = match from_value::<Frame>(v) {
+                let r = match parse_json_off_executor::<Frame>(Bytes::from(v.get().to_owned())).await {
                     Ok(frame) => predict_one(&state, frame).await,
                     Err(e) => Err(e),
                 };
@@ -289,17 +321,18 @@ where
     (status = 200, description = "Predictions and metrics", body = EvaluateResponse),
     (status = 400, description = "Malformed JSON", body = ErrorBody),
     (status = 413, description = "Body over the limit", body = ErrorBody),
+    (status = 422, description = "The body is not an array of frames, or ground truth is invalid", body = ErrorBody),
 ))]
 async fn evaluate(
     State(state): State<AppState>,
-    ApiJson(values): ApiJson<Vec<serde_json::Value>>,
+    ApiJson(values): ApiJson<Vec<Box<serde_json::value::RawValue>>>,
 ) -> Result<Json<EvaluateResponse>> {
     let concurrency = state.batch_concurrency;
     let results: Vec<(Option<Frame>, BatchItem)> = futures::stream::iter(values.into_iter().enumerate())
         .map(|(i, v)| {
             let state = state.clone();
             async move {
-                match from_value::<Frame>(v) {
+                match parse_json_off_executor::<Frame>(Bytes::from(v.get().to_owned())).await {
                     Ok(frame) => {
                         let r = predict_one(&state, frame.clone()).await;
                         (Some(frame), item(i, r))
