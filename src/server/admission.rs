@@ -112,13 +112,14 @@ pub struct Sizing {
 }
 
 impl Sizing {
-    /// Defaults for `cores` CPU cores: one inference worker per 4 cores (at least 1) with the
-    /// rest of its share as intra-op threads, one decode permit per core, a waiting line of 8
-    /// per permit, and a short batch wait on machines with more than one worker.
+    /// Defaults for `cores` CPU cores: one inference worker per 4 cores (at least 1) with half
+    /// of its share of the cores as intra-op threads (the other half decodes), one decode permit
+    /// per core, a waiting line of 8 per permit, and a short batch wait on machines with more
+    /// than one worker.
     pub fn for_cores(cores: usize) -> Sizing {
         let cores = cores.max(1);
         let workers = cores.div_ceil(4).max(1);
-        let intra_threads = (cores / workers).clamp(1, 4);
+        let intra_threads = (cores / workers / 2).clamp(1, 4);
         Sizing {
             cores,
             workers,
@@ -172,9 +173,9 @@ mod tests {
     #[test]
     fn sizing_follows_the_cores() {
         let two = Sizing::for_cores(2);
-        assert_eq!((two.workers, two.intra_threads, two.decode_permits), (1, 2, 2));
+        assert_eq!((two.workers, two.intra_threads, two.decode_permits), (1, 1, 2));
         let sixteen = Sizing::for_cores(16);
-        assert_eq!((sixteen.workers, sixteen.intra_threads, sixteen.decode_permits), (4, 4, 16));
+        assert_eq!((sixteen.workers, sixteen.intra_threads, sixteen.decode_permits), (4, 2, 16));
         assert_eq!(Sizing::for_cores(0).cores, 1);
     }
 }

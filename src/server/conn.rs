@@ -198,12 +198,14 @@ pub fn raise_fd_limit() -> Option<u64> {
                 return None;
             }
             if lim.rlim_cur < lim.rlim_max {
+                // Up to the hard limit, bounded (an "unlimited" hard limit is huge).
                 let want = libc::rlimit { rlim_cur: lim.rlim_max.min(1 << 20), rlim_max: lim.rlim_max };
                 if want.rlim_cur > lim.rlim_cur && libc::setrlimit(libc::RLIMIT_NOFILE, &want) == 0 {
                     lim.rlim_cur = want.rlim_cur;
                 }
             }
         }
+        #[allow(clippy::unnecessary_cast)] // rlim_t is not u64 on every platform
         Some(lim.rlim_cur as u64)
     }
     #[cfg(not(unix))]

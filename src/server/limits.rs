@@ -41,6 +41,44 @@ pub fn check_image_header(bytes: &[u8], width: u32, height: u32) -> Result<bool>
     Ok(true)
 }
 
+/// A frame's crops may read at most this many times the image's pixels in all: a crop's cost
+/// grows with its window (side²), so a few huge boxes or many large ones are refused before
+/// they are cropped.
+pub const CROP_BUDGET_IMAGES: f64 = 32.0;
+
+/// What the crops of one frame may still read.
+#[derive(Debug, Clone, Copy)]
+pub struct CropBudget {
+    left: f64,
+    total: f64,
+}
+
+impl CropBudget {
+    /// The budget of a `width`×`height` frame.
+    pub fn for_image(width: u32, height: u32) -> CropBudget {
+        let total = CROP_BUDGET_IMAGES * (width as f64 * height as f64).max(1.0);
+        CropBudget { left: total, total }
+    }
+
+    /// Takes a crop window of `side` pixels from the budget, or refuses the frame naming `field`.
+    pub fn spend(&mut self, side: f64, field: &str) -> Result<()> {
+        let cost = side * side;
+        if cost.is_nan() || cost > self.left {
+            return Err(Error::field(
+                field,
+                format!(
+                    "the crops of this frame up to here read {:.0} pixels, more than the limit of {:.0} \
+                     ({CROP_BUDGET_IMAGES} times the image): fewer or smaller 2D boxes",
+                    self.total - self.left + cost,
+                    self.total
+                ),
+            ));
+        }
+        self.left -= cost;
+        Ok(())
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -57,6 +95,18 @@ mod tests {
         let e = check_image_header(&png(8, 6), 80, 60).unwrap_err();
         assert_eq!(e.field_name(), Some("image"));
         assert!(!check_image_header(b"not an image", 8, 6).unwrap());
+    }
+
+    #[test]
+    fn crops_share_one_budget_per_frame() {
+        let mut b = CropBudget::for_image(100, 100);
+        // 32 images of 100x100: 320,000 pixels, e.g. three 300-pixel windows and not a fourth.
+        for i in 0..3 {
+            b.spend(300.0, &format!("persons[{i}]")).unwrap();
+        }
+        let e = b.spend(300.0, "persons[3]").unwrap_err();
+        assert_eq!(e.field_name(), Some("persons[3]"));
+        assert!(CropBudget::for_image(100, 100).spend(f64::NAN, "p").is_err());
     }
 
     #[test]

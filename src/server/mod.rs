@@ -40,32 +40,37 @@ pub struct RuntimeArgs {
     /// ONNX Runtime shared library (default: .ort/lib/libonnxruntime.so, installed by scripts/setup.sh).
     #[arg(long, env = "ORT_DYLIB_PATH")]
     pub ort_lib: Option<PathBuf>,
-    /// Inference worker threads; each owns its own ONNX Runtime sessions.
-    #[arg(long, env = "POSEFUSE_WORKERS", default_value_t = 1)]
+    /// Inference worker threads; each owns its own ONNX Runtime sessions (0: one per 4 cores).
+    #[arg(long, env = "POSEFUSE_WORKERS", default_value_t = 0)]
     pub workers: usize,
-    /// ONNX Runtime intra-op threads per session.
-    #[arg(long, env = "POSEFUSE_INTRA_THREADS", default_value_t = 1)]
+    /// ONNX Runtime intra-op threads per session (0: the worker's share of the cores, at most 4).
+    #[arg(long, env = "POSEFUSE_INTRA_THREADS", default_value_t = 0)]
     pub intra_threads: usize,
     /// Largest inference batch a worker forms from queued jobs.
     #[arg(long, env = "POSEFUSE_MAX_BATCH", default_value_t = 16)]
     pub max_batch: usize,
-    /// Microseconds a worker waits for more jobs to fill a batch (0: batch only what is queued).
-    #[arg(long, env = "POSEFUSE_BATCH_WAIT_US", default_value_t = 0)]
-    pub batch_wait_us: u64,
+    /// Microseconds a worker waits for more jobs to fill a batch (0: batch only what is queued;
+    /// default: 0 with one worker, 200 with several).
+    #[arg(long, env = "POSEFUSE_BATCH_WAIT_US")]
+    pub batch_wait_us: Option<u64>,
     /// Inference jobs (one per person and network) that may wait; beyond, requests get 429.
     #[arg(long, env = "POSEFUSE_QUEUE_SIZE", default_value_t = 256)]
     pub queue_size: usize,
 }
 
 impl RuntimeArgs {
-    /// The runtime configuration these flags describe.
+    /// The runtime configuration these flags describe (unset sizes from the machine's cores).
     pub fn runtime_config(&self) -> RuntimeConfig {
+        let sizing = admission::Sizing::detect();
+        let workers = if self.workers == 0 { sizing.workers } else { self.workers };
+        let intra_threads = if self.intra_threads == 0 { sizing.intra_threads } else { self.intra_threads };
+        let batch_wait_us = self.batch_wait_us.unwrap_or(if workers > 1 { sizing.batch_wait_us.max(200) } else { 0 });
         RuntimeConfig {
             ort_lib: self.ort_lib.clone(),
-            workers: self.workers,
-            intra_threads: self.intra_threads,
+            workers,
+            intra_threads,
             max_batch: self.max_batch,
-            batch_wait: Duration::from_micros(self.batch_wait_us),
+            batch_wait: Duration::from_micros(batch_wait_us),
             queue_size: self.queue_size,
         }
     }

@@ -374,6 +374,7 @@ fn plan_frame(
     let decode = t0.elapsed();
     let t1 = Instant::now();
     let mut persons = Vec::with_capacity(frame.persons.len());
+    let mut crop_budget = super::limits::CropBudget::for_image(camera.width, camera.height);
     let mut skipped = Vec::new();
     let mut skip = |index: usize, id: &str, e: Error| {
         metrics::counter!("posefuse_persons_skipped_total").increment(1);
@@ -441,7 +442,10 @@ fn plan_frame(
             continue;
         }
         let image_input = match (mode, &image, prepared.crop.as_ref()) {
-            (Mode::Fusion | Mode::Camera, ImageState::Decoded(img), Some(t)) => Some(normalize(&crop_rgb(img, t), cfg)),
+            (Mode::Fusion | Mode::Camera, ImageState::Decoded(img), Some(t)) => {
+                crop_budget.spend(t.side(), &field)?;
+                Some(normalize(&crop_rgb(img, t), cfg))
+            }
             (Mode::Fusion | Mode::Camera, _, _) => {
                 return Err(Error::Runtime(format!("{field}: camera mode chosen without a crop")));
             }
