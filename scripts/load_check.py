@@ -32,6 +32,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
+def ready(port: int) -> bool:
+    """GET /readyz with a blocking socket: True on 200."""
+    with socket.create_connection((HOST, port), timeout=2) as c:
+        c.sendall(b"GET /readyz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n")
+        return c.recv(64).startswith(b"HTTP/1.1 200")
+
+
 class Server:
     """A `posefuse serve` child process with its log in a file."""
 
@@ -59,8 +66,7 @@ class Server:
             if self.proc.poll() is not None:
                 raise SystemExit(f"server exited: {log.read_text()[-2000:]}")
             try:
-                status, _ = asyncio.run(request(self.port, "GET", "/readyz", b""))
-                if status == 200:
+                if ready(self.port):
                     return
             except OSError:
                 pass
@@ -136,9 +142,14 @@ class KeepAlive:
             reader, writer = self.conn
             head = f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n"
             try:
+                # The answer may come before the body is read (429 at admission): wait for it,
+                # not for the body to be sent.
                 writer.write(head.encode() + body)
-                await writer.drain()
                 status, _ = await asyncio.wait_for(read_response(reader), timeout)
+                if status == 429:
+                    # The server did not read the body: this connection cannot be reused.
+                    writer.close()
+                    self.conn = None
                 return status
             except (OSError, asyncio.IncompleteReadError):
                 writer.close()
@@ -207,7 +218,7 @@ async def drain_check(a: argparse.Namespace) -> dict:
     server.proc.send_signal(signal.SIGTERM)
     stream_out = b""
     try:
-        stream_out = await asyncio.wait_for(reader.read(1 << 20), 5)
+        stream_out = await asyncio.wait_for(reader.read(), 5)
     except (TimeoutError, OSError):
         pass
     code = await asyncio.to_thread(server.proc.wait, a.drain_timeout + 30)
@@ -336,6 +347,8 @@ async def run_clients(
         "statuses": {str(k): v for k, v in sorted(statuses.items())},
         "ok_p50_ms": round(percentile(ok_latency, 0.5) * 1e3, 1),
         "ok_p99_ms": round(percentile(ok_latency, 0.99) * 1e3, 1),
+        "p50_429_ms": round(percentile(refused_latency, 0.5) * 1e3, 1),
+        "p99_429_ms": round(percentile(refused_latency, 0.99) * 1e3, 1),
         "max_429_ms": round(max(refused_latency, default=0.0) * 1e3, 1),
         "peak_rss_mb": round(peak["VmRSS"] / 1024),
         "peak_threads": peak["Threads"],

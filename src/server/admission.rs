@@ -1,7 +1,9 @@
-//! Admission before work: a frame's decode and pre-processing start only with one of a few
-//! permits (about the number of cores), so concurrent requests do not all decode at once (CPU
-//! and memory stay bounded at any concurrency). A bounded number of requests may wait for a
-//! permit; beyond that a request is refused at once (429 with `Retry-After`), before any decode.
+//! Admission before work. A frame is admitted (a ticket) before its body is read or parsed:
+//! at most `permits + max_waiting` frames are in the server at once, and one more is refused at
+//! once (429 with `Retry-After`), before reading, parsing or decoding it. An admitted frame's
+//! decode and pre-processing then start only with one of a few permits (about the number of
+//! cores), so concurrent requests do not all decode at once: CPU, threads and memory stay
+//! bounded at any concurrency.
 
 use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
@@ -16,6 +18,19 @@ pub struct Admission {
     total: usize,
     waiting: AtomicUsize,
     max_waiting: usize,
+    admitted: AtomicUsize,
+}
+
+/// A frame's place in the server, from before its body is read to its response.
+pub struct Ticket {
+    admission: Arc<Admission>,
+}
+
+impl Drop for Ticket {
+    fn drop(&mut self) {
+        let n = self.admission.admitted.fetch_sub(1, Ordering::AcqRel) - 1;
+        metrics::gauge!("posefuse_frames_admitted").set(n as f64);
+    }
 }
 
 /// Held while a frame is being decoded and pre-processed.
@@ -41,12 +56,33 @@ impl Admission {
             total: permits,
             waiting: AtomicUsize::new(0),
             max_waiting,
+            admitted: AtomicUsize::new(0),
         })
     }
 
     /// No bound (command-line tools that run one frame at a time).
     pub fn unbounded() -> Arc<Admission> {
-        Admission::new(Semaphore::MAX_PERMITS, 0)
+        Admission::new(Semaphore::MAX_PERMITS, usize::MAX / 2)
+    }
+
+    /// Admits one frame, or refuses it at once when `permits + max_waiting` frames are in.
+    pub fn admit(self: &Arc<Self>) -> Result<Ticket> {
+        let cap = self.total.saturating_add(self.max_waiting);
+        match self.admitted.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < cap).then_some(n + 1)) {
+            Ok(n) => {
+                metrics::gauge!("posefuse_frames_admitted").set((n + 1) as f64);
+                Ok(Ticket { admission: self.clone() })
+            }
+            Err(_) => {
+                metrics::counter!("posefuse_admission_refused_total").increment(1);
+                Err(Error::Overloaded)
+            }
+        }
+    }
+
+    /// Frames admitted now.
+    pub fn admitted(&self) -> usize {
+        self.admitted.load(Ordering::Relaxed)
     }
 
     /// Frames being pre-processed now.
@@ -64,22 +100,14 @@ impl Admission {
         metrics::gauge!("posefuse_admission_waiting").set(self.waiting() as f64);
     }
 
-    /// Takes a permit, waiting in line if the line has room; `Overloaded` at once otherwise.
-    /// Dropping the future leaves the line.
-    pub async fn enter(self: &Arc<Self>) -> Result<Permit> {
+    /// Takes a decode permit for an admitted frame, waiting for one if needed (admission
+    /// bounds how many wait). Dropping the future leaves the line.
+    pub async fn enter(self: &Arc<Self>, _admitted: &Ticket) -> Result<Permit> {
         if let Ok(p) = self.permits.clone().try_acquire_owned() {
             self.publish();
             return Ok(Permit { _permit: Some(p), admission: Some(self.clone()) });
         }
-        // Join the line unless it is full.
-        let joined = self
-            .waiting
-            .fetch_update(Ordering::AcqRel, Ordering::Acquire, |w| (w < self.max_waiting).then_some(w + 1))
-            .is_ok();
-        if !joined {
-            metrics::counter!("posefuse_admission_refused_total").increment(1);
-            return Err(Error::Overloaded);
-        }
+        self.waiting.fetch_add(1, Ordering::AcqRel);
         struct Leave<'a>(&'a Admission);
         impl Drop for Leave<'_> {
             fn drop(&mut self) {
@@ -144,30 +172,34 @@ mod tests {
     #[tokio::test]
     async fn a_full_line_is_refused_at_once_and_a_freed_permit_admits_the_next() {
         let a = Admission::new(1, 1);
-        let first = a.enter().await.unwrap();
+        let (t1, t2) = (a.admit().unwrap(), a.admit().unwrap());
+        let t = std::time::Instant::now();
+        assert!(matches!(a.admit(), Err(Error::Overloaded)));
+        assert!(t.elapsed() < Duration::from_millis(50));
+        let first = a.enter(&t1).await.unwrap();
         assert_eq!(a.active(), 1);
         let a2 = a.clone();
-        let second = tokio::spawn(async move { a2.enter().await.map(|_| ()) });
+        let second = tokio::spawn(async move { a2.enter(&t2).await.map(|_| ()) });
         while a.waiting() == 0 {
             tokio::time::sleep(Duration::from_millis(1)).await;
         }
-        let t = std::time::Instant::now();
-        assert!(matches!(a.enter().await, Err(Error::Overloaded)));
-        assert!(t.elapsed() < Duration::from_millis(50));
         drop(first);
         second.await.unwrap().unwrap();
-        assert_eq!((a.active(), a.waiting()), (0, 0));
+        assert_eq!((a.active(), a.waiting(), a.admitted()), (0, 0, 1));
+        drop(t1);
+        assert!(a.admit().is_ok());
     }
 
     #[tokio::test]
     async fn leaving_the_line_frees_its_place() {
         let a = Admission::new(1, 1);
-        let _held = a.enter().await.unwrap();
-        let r = tokio::time::timeout(Duration::from_millis(20), a.enter()).await;
+        let (t1, t2) = (a.admit().unwrap(), a.admit().unwrap());
+        let _held = a.enter(&t1).await.unwrap();
+        let r = tokio::time::timeout(Duration::from_millis(20), a.enter(&t2)).await;
         assert!(r.is_err(), "waits while the permit is held");
         assert_eq!(a.waiting(), 0);
-        let r = tokio::time::timeout(Duration::from_millis(20), a.enter()).await;
-        assert!(r.is_err(), "the line has room again");
+        drop(t2);
+        assert_eq!(a.admitted(), 1);
     }
 
     #[test]

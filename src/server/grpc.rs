@@ -189,11 +189,20 @@ pub fn response_to_proto(r: PoseResponse) -> proto::PredictResponse {
     }
 }
 
-async fn predict_message(state: &AppState, msg: proto::PredictRequest) -> Result<proto::PredictResponse> {
+/// The path of the unary `Predict` method (admitted before its message is read).
+pub const PREDICT_PATH: &str = "/posefuse.v1.Posefuse/Predict";
+
+async fn predict_message(
+    state: &AppState,
+    msg: proto::PredictRequest,
+    ticket: Option<&super::admission::Ticket>,
+) -> Result<proto::PredictResponse> {
     let t0 = Instant::now();
-    let r = match frame_from_proto(msg) {
-        Ok((frame, image)) => state.predictor.predict_within(frame, image, state.request_timeout).await,
-        Err(e) => Err(e),
+    let (p, timeout) = (&state.predictor, state.request_timeout);
+    let r = match (frame_from_proto(msg), ticket) {
+        (Ok((frame, image)), Some(t)) => p.predict_admitted_within(t, frame, image, timeout).await,
+        (Ok((frame, image)), None) => p.predict_within(frame, image, timeout).await,
+        (Err(e), _) => Err(e),
     };
     super::metrics::frame_outcome(&r);
     metrics::histogram!("posefuse_request_seconds").record(t0.elapsed().as_secs_f64());
@@ -212,7 +221,8 @@ impl Posefuse for GrpcService {
         &self,
         request: Request<proto::PredictRequest>,
     ) -> std::result::Result<Response<proto::PredictResponse>, Status> {
-        let r = predict_message(&self.state, request.into_inner()).await;
+        let ticket = request.extensions().get::<std::sync::Arc<super::admission::Ticket>>().cloned();
+        let r = predict_message(&self.state, request.into_inner(), ticket.as_deref()).await;
         count("Predict", r.as_ref().map_or_else(super::errors::grpc_code, |_| tonic::Code::Ok));
         r.map(Response::new).map_err(|e| grpc_status(&e))
     }
@@ -245,7 +255,7 @@ impl Posefuse for GrpcService {
                         }
                         Err(s) => return Err(s),
                     };
-                    let result = match predict_message(&state, msg).await {
+                    let result = match predict_message(&state, msg, None).await {
                         Ok(r) => proto::stream_response::Result::Response(r),
                         Err(e) => proto::stream_response::Result::Error(proto::Error {
                             code: e.code().to_string(),

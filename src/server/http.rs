@@ -176,8 +176,15 @@ fn item(index: usize, r: Result<PoseResponse>) -> BatchItem {
     (status = 503, description = "Warming up", body = ErrorBody),
     (status = 504, description = "Deadline passed", body = ErrorBody),
 ))]
-async fn poses(State(state): State<AppState>, ApiJson(frame): ApiJson<Frame>) -> Result<Json<PoseResponse>> {
-    predict_one(&state, frame).await.map(Json)
+async fn poses(State(state): State<AppState>, req: Request) -> Result<Json<PoseResponse>> {
+    // Admitted before the body is read: a full server answers 429 without reading or parsing.
+    let ticket = state.predictor.admission().admit()?;
+    let ApiJson(frame) = ApiJson::<Frame>::from_request(req, &state).await?;
+    let t0 = Instant::now();
+    let r = state.predictor.predict_admitted_within(&ticket, frame, None, state.request_timeout).await;
+    super::metrics::frame_outcome(&r);
+    metrics::histogram!("posefuse_request_seconds").record(t0.elapsed().as_secs_f64());
+    r.map(Json)
 }
 
 /// Several frames: a JSON array in and out, or NDJSON (`Content-Type: application/x-ndjson`)

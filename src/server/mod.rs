@@ -299,10 +299,21 @@ impl App {
         let grpc_router = grpc::router(state.clone(), health_service);
         // One port: `Content-Type: application/grpc…` goes to tonic, everything else to the HTTP routes.
         let in_flight = Arc::new(lifecycle::InFlight::default());
+        let admission = state.predictor.admission().clone();
         let app = axum::Router::new()
-            .fallback_service(tower::service_fn(move |req: Request| {
+            .fallback_service(tower::service_fn(move |mut req: Request| {
                 let (h, g) = (http_router.clone(), grpc_router.clone());
+                // A unary frame is admitted before its message is read (429 at once when full).
+                let admitted = (is_grpc(&req) && req.uri().path() == grpc::PREDICT_PATH).then(|| admission.admit());
                 async move {
+                    if let Some(admitted) = admitted {
+                        match admitted {
+                            Ok(ticket) => {
+                                req.extensions_mut().insert(Arc::new(ticket));
+                            }
+                            Err(e) => return Ok(errors::grpc_status(&e).into_http()),
+                        }
+                    }
                     if is_grpc(&req) {
                         g.oneshot(req).await
                     } else {

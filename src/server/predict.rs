@@ -114,14 +114,25 @@ impl Predictor {
     /// replaces `frame.image` (base64) when given. Dropping the future (deadline, client gone)
     /// stops the frame's pre-processing at its next step and queues nothing more.
     pub async fn predict(&self, frame: Frame, raw_image: Option<Vec<u8>>) -> Result<PoseResponse> {
+        let ticket = self.admission.admit()?;
+        self.predict_admitted(&ticket, frame, raw_image).await
+    }
+
+    /// [`Predictor::predict`] for a frame admitted before its body was read.
+    pub async fn predict_admitted(
+        &self,
+        ticket: &super::admission::Ticket,
+        frame: Frame,
+        raw_image: Option<Vec<u8>>,
+    ) -> Result<PoseResponse> {
         let started = Instant::now();
         let runtime = self.runtime();
         if !runtime.is_ready() {
             return Err(Error::Unavailable("the models are warming up".into()));
         }
         let bundle = runtime.bundle().clone();
-        // Admitted before any decoding; an immediate 429 when the waiting line is full.
-        let permit = self.admission.enter().await?;
+        // A decode permit before any decoding (admission bounds how many wait for one).
+        let permit = self.admission.enter(ticket).await?;
         let abandoned = Arc::new(AtomicBool::new(false));
         let _abandon_on_drop = AbandonOnDrop(abandoned.clone());
         // Decoding and cropping are CPU work; keep them off the async executor.
@@ -171,7 +182,19 @@ impl Predictor {
         raw_image: Option<Vec<u8>>,
         timeout: Duration,
     ) -> Result<PoseResponse> {
-        match tokio::time::timeout(timeout, self.predict(frame, raw_image)).await {
+        let ticket = self.admission.admit()?;
+        self.predict_admitted_within(&ticket, frame, raw_image, timeout).await
+    }
+
+    /// [`Predictor::predict_admitted`] with a deadline.
+    pub async fn predict_admitted_within(
+        &self,
+        ticket: &super::admission::Ticket,
+        frame: Frame,
+        raw_image: Option<Vec<u8>>,
+        timeout: Duration,
+    ) -> Result<PoseResponse> {
+        match tokio::time::timeout(timeout, self.predict_admitted(ticket, frame, raw_image)).await {
             Ok(r) => r,
             Err(_) => Err(Error::Timeout(timeout.as_millis() as u64)),
         }
