@@ -448,3 +448,20 @@ fn the_serve_process_reloads_on_sighup_and_exits_0_on_sigterm() {
     assert!(logged("drain deadline passed"), "{}", std::fs::read_to_string(log.path()).unwrap());
     drop(half);
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn per_frame_limits_on_persons_and_points_are_flags() {
+    let mut cfg = config();
+    cfg.frame_limits = posefuse::server::limits::FrameLimits { max_persons: 2, max_points: 400 };
+    let s = start(cfg).await;
+    // three_mode_frame: 3 persons, 553 points.
+    let mut frame = three_mode_frame();
+    let (status, r) = post(&s, "/v1/poses", &serde_json::to_value(&frame).unwrap()).await;
+    assert_eq!((status, r["error"]["field"].as_str()), (422, Some("persons")), "{r}");
+    frame.persons.truncate(2);
+    let (status, r) = post(&s, "/v1/poses", &serde_json::to_value(&frame).unwrap()).await;
+    assert_eq!((status, r["error"]["field"].as_str()), (422, Some("points")), "{r}");
+    let (status, r) = post(&s, "/v1/poses", &frame_json()).await;
+    assert_eq!(status, 200, "{r}");
+    s.shutdown().await.unwrap();
+}

@@ -41,6 +41,41 @@ pub fn check_image_header(bytes: &[u8], width: u32, height: u32) -> Result<bool>
     Ok(true)
 }
 
+/// Per-frame limits on persons and LiDAR points (flags of `posefuse serve`). Each person scans
+/// every point of its frame, so their product bounds a frame's point work.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameLimits {
+    pub max_persons: usize,
+    pub max_points: usize,
+}
+
+impl Default for FrameLimits {
+    /// 256 persons; 1,000,000 points (a 32 MiB body holds about 2 million in the base64 form).
+    fn default() -> Self {
+        FrameLimits { max_persons: super::predict::MAX_PERSONS, max_points: 1_000_000 }
+    }
+}
+
+impl FrameLimits {
+    /// Refuses a frame over a limit, naming the field, before its points are decoded.
+    pub fn check(&self, frame: &crate::frame::Frame) -> Result<()> {
+        if frame.persons.len() > self.max_persons {
+            return Err(Error::field(
+                "persons",
+                format!("{} persons; at most {} per frame", frame.persons.len(), self.max_persons),
+            ));
+        }
+        let points = match &frame.points {
+            crate::frame::Points::Flat(v) => v.len() / 3,
+            crate::frame::Points::Encoded { b64 } => b64.len() / 4 * 3 / 12,
+        };
+        if points > self.max_points {
+            return Err(Error::field("points", format!("{points} points; at most {} per frame", self.max_points)));
+        }
+        Ok(())
+    }
+}
+
 /// A frame's crops may read at most this many times the image's pixels in all: a crop's cost
 /// grows with its window (side²), so a few huge boxes or many large ones are refused before
 /// they are cropped.

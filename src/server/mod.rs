@@ -123,6 +123,12 @@ pub struct ServeArgs {
     /// Requests that may wait for a decode permit; beyond, 429 at once (0: 8 per permit).
     #[arg(long, env = "POSEFUSE_ADMISSION_QUEUE", default_value_t = 0)]
     pub admission_queue: usize,
+    /// Persons per frame at most (422 beyond).
+    #[arg(long, env = "POSEFUSE_MAX_PERSONS", default_value_t = 256)]
+    pub max_persons: usize,
+    /// LiDAR points per frame at most (422 beyond).
+    #[arg(long, env = "POSEFUSE_MAX_POINTS", default_value_t = 1_000_000)]
+    pub max_points: usize,
 }
 
 /// Arguments of `posefuse predict`.
@@ -188,6 +194,8 @@ pub struct ServerConfig {
     pub decode_permits: usize,
     /// Requests that may wait for a decode permit before 429.
     pub admission_queue: usize,
+    /// Persons and points per frame.
+    pub frame_limits: limits::FrameLimits,
 }
 
 impl ServerConfig {
@@ -204,6 +212,7 @@ impl ServerConfig {
             conn: conn::ConnLimits::default(),
             decode_permits: 2,
             admission_queue: 64,
+            frame_limits: limits::FrameLimits::default(),
         }
     }
 }
@@ -249,7 +258,7 @@ impl App {
     pub fn start(config: &ServerConfig) -> Result<App> {
         let runtime = load_runtime(&config.model_dir, &config.runtime)?;
         let admission = admission::Admission::new(config.decode_permits, config.admission_queue);
-        let predictor = Predictor::with_admission(runtime, admission);
+        let predictor = Predictor::with_admission(runtime, admission).with_limits(config.frame_limits);
         let reloader = reload::Reloader::new(predictor.clone(), config.model_dir.clone(), config.runtime.clone());
         let state = AppState {
             predictor,
@@ -438,6 +447,7 @@ pub fn serve_command(a: ServeArgs) -> anyhow::Result<()> {
         },
         decode_permits: a.decode_permits,
         admission_queue: a.admission_queue,
+        frame_limits: limits::FrameLimits { max_persons: a.max_persons, max_points: a.max_points },
     };
     tokio_runtime()?.block_on(serve_with_signals(config, a.addr))
 }

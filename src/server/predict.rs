@@ -28,6 +28,7 @@ use crate::runtime::{Bundle, ChainStep, JobOutput, ModelKind, Runtime};
 pub struct Predictor {
     runtime: Arc<RwLock<Arc<Runtime>>>,
     admission: Arc<Admission>,
+    limits: super::limits::FrameLimits,
 }
 
 /// The camera image of a frame after decoding.
@@ -86,7 +87,13 @@ impl Predictor {
 
     /// A predictor whose pre-processing is admitted through `admission`.
     pub fn with_admission(runtime: Arc<Runtime>, admission: Arc<Admission>) -> Predictor {
-        Predictor { runtime: Arc::new(RwLock::new(runtime)), admission }
+        Predictor { runtime: Arc::new(RwLock::new(runtime)), admission, limits: Default::default() }
+    }
+
+    /// The same predictor with other per-frame limits.
+    pub fn with_limits(mut self, limits: super::limits::FrameLimits) -> Predictor {
+        self.limits = limits;
+        self
     }
 
     /// The bundle the runtime serves now.
@@ -135,10 +142,12 @@ impl Predictor {
         let permit = self.admission.enter(ticket).await?;
         let abandoned = Arc::new(AtomicBool::new(false));
         let _abandon_on_drop = AbandonOnDrop(abandoned.clone());
+        let limits = self.limits;
         // Decoding and cropping are CPU work; keep them off the async executor.
         let plan = tokio::task::spawn_blocking(move || {
             let _permit = permit;
             let cfg = bundle.config();
+            limits.check(&frame)?;
             plan_frame(&frame, raw_image, cfg, &abandoned).map(|p| (p, frame.frame_id))
         })
         .await
@@ -346,7 +355,8 @@ fn decode_image(frame: &Frame, raw_image: Option<Vec<u8>>) -> Result<ImageState>
     Ok(ImageState::Decoded(img))
 }
 
-/// Persons per frame: each one scans every point of the frame, so the work is bounded here.
+/// Persons per frame by default: each one scans every point of the frame, so the work is
+/// bounded here (`--max-persons`).
 pub const MAX_PERSONS: usize = 256;
 
 /// A 2D box may extend past the image (a person close to the camera) but not without bound: the
@@ -379,12 +389,6 @@ fn plan_frame(
     abandoned: &AtomicBool,
 ) -> Result<FramePlan> {
     frame.validate()?;
-    if frame.persons.len() > MAX_PERSONS {
-        return Err(Error::field(
-            "persons",
-            format!("{} persons; at most {MAX_PERSONS} per frame", frame.persons.len()),
-        ));
-    }
     super::limits::check_declared_size(frame.calibration.width, frame.calibration.height)?;
     let camera = Camera::from_calibration(&frame.calibration)?;
     let t0 = Instant::now();
