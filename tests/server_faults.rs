@@ -465,3 +465,63 @@ async fn per_frame_limits_on_persons_and_points_are_flags() {
     assert_eq!(status, 200, "{r}");
     s.shutdown().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn large_bodies_are_parsed_off_the_async_threads() {
+    let s = start(config()).await;
+    // 4 bodies of ~24 MB of flat points at once (refused for the point count after parsing).
+    let mut v = frame_json();
+    v["points"] = json!("POINTS");
+    let text = serde_json::to_string(&v).unwrap();
+    let numbers = format!("[{}0.25]", "0.25,".repeat(4_800_000));
+    let body = text.replace("\"POINTS\"", &numbers);
+    let mut posts = Vec::new();
+    for _ in 0..4 {
+        let (url, body) = (s.url("/v1/poses"), body.clone());
+        posts.push(tokio::spawn(async move {
+            let r = reqwest::Client::new().post(url).header("content-type", "application/json").body(body).send().await;
+            r.map(|r| r.status().as_u16()).unwrap_or(0)
+        }));
+    }
+    // Health checks keep answering while they are read and parsed.
+    let c = reqwest::Client::new();
+    let mut worst = Duration::ZERO;
+    while posts.iter().any(|p| !p.is_finished()) {
+        let t = Instant::now();
+        assert_eq!(c.get(s.url("/healthz")).send().await.unwrap().status(), 200);
+        worst = worst.max(t.elapsed());
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    for p in posts {
+        assert_eq!(p.await.unwrap(), 422);
+    }
+    assert!(worst < Duration::from_millis(500), "/healthz took {worst:?} while bodies were parsed");
+    s.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn many_of_the_largest_boxes_are_refused_before_cropping() {
+    let s = start(config()).await;
+    let b = person_box(8.0, 0.5);
+    let mut frame = fusion_frame();
+    frame.persons = (0..256)
+        .map(|i| {
+            let mut p = person(&format!("p{i}"), b, true);
+            // The largest box allowed: twice the image on each side.
+            p.box_2d = Some(posefuse::frame::Box2d {
+                center_x: WIDTH as f64 / 2.0,
+                center_y: HEIGHT as f64 / 2.0,
+                width: 2.0 * WIDTH as f64,
+                height: 2.0 * HEIGHT as f64,
+            });
+            p
+        })
+        .collect();
+    let t = Instant::now();
+    let (status, r) = post(&s, "/v1/poses", &serde_json::to_value(&frame).unwrap()).await;
+    assert_eq!(status, 422, "{r}");
+    assert!(r["error"]["field"].as_str().unwrap().starts_with("persons["), "{r}");
+    assert!(r["error"]["message"].as_str().unwrap().contains("times the image"), "{r}");
+    assert!(t.elapsed() < Duration::from_secs(3), "{:?}", t.elapsed());
+    s.shutdown().await.unwrap();
+}
