@@ -45,7 +45,8 @@ pub struct CameraCalibration {
 
 /// LiDAR points: a flat JSON array `[x0,y0,z0,x1,...]`, or `{"b64": ...}` with base64 of a
 /// little-endian f32 buffer of the same layout (the compact form perception stacks should send).
-#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[derive(Debug, Clone, Serialize, PartialEq, utoipa::ToSchema)]
+// Deserialize: src/frame_points.rs (no buffering, unknown keys refused).
 #[serde(untagged)]
 pub enum Points {
     /// Flat array of x, y, z triples.

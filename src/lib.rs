@@ -7,6 +7,7 @@
 pub mod error;
 pub mod eval;
 pub mod frame;
+mod frame_points;
 pub mod geometry;
 pub mod keypoints;
 pub mod metrics;

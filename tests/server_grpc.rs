@@ -195,3 +195,23 @@ async fn limits_and_overload_are_resource_exhausted() {
     }
     s.shutdown().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_stream_is_told_to_end_when_the_drain_starts() {
+    let mut cfg = config();
+    cfg.drain_timeout = Duration::from_secs(3);
+    let mut s = start(cfg).await;
+    let mut c = client(&s).await;
+    let (tx, mut rx) = tokio::sync::mpsc::channel(4);
+    tx.send(three_mode_request()).await.unwrap();
+    let requests = futures::stream::poll_fn(move |cx| rx.poll_recv(cx));
+    let mut out = c.predict_stream(requests).await.unwrap().into_inner();
+    assert_eq!(out.message().await.unwrap().unwrap().index, 0);
+    s.signal_shutdown();
+    // The client keeps its side open; the server ends the stream with UNAVAILABLE.
+    let end = tokio::time::timeout(Duration::from_secs(5), out.message()).await.unwrap();
+    assert_eq!(end.unwrap_err().code(), tonic::Code::Unavailable);
+    let task = s.task.take().unwrap();
+    tokio::time::timeout(Duration::from_secs(10), task).await.unwrap().unwrap().unwrap();
+    drop(tx);
+}

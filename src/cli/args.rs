@@ -8,11 +8,15 @@ use std::time::Duration;
 use posefuse::eval::HeadingNoise;
 use posefuse::frame::RequestedMode;
 use posefuse::runtime::RuntimeConfig;
+use posefuse::server::conn::ConnLimits;
 use posefuse::server::ServerConfig;
+use posefuse::service::admission::Sizing;
+use posefuse::service::limits::FrameLimits;
 use posefuse::sim::street::Profile;
 use posefuse::sim::SimulateOptions;
 
 const RT: RuntimeConfig = RuntimeConfig::DEFAULT;
+const CONN: ConnLimits = ConnLimits::DEFAULT;
 
 /// Model bundle and ONNX Runtime settings, shared by `serve`, `predict` and `eval`.
 #[derive(Debug, Clone, clap::Args)]
@@ -24,32 +28,37 @@ pub struct RuntimeArgs {
     /// installed by scripts/setup.sh).
     #[arg(long)]
     pub ort_lib: Option<PathBuf>,
-    /// Inference worker threads; each owns its own ONNX Runtime sessions.
-    #[arg(long, env = "POSEFUSE_WORKERS", default_value_t = RT.workers)]
+    /// Inference worker threads; each owns its own ONNX Runtime sessions (0: one per 4 cores).
+    #[arg(long, env = "POSEFUSE_WORKERS", default_value_t = 0)]
     pub workers: usize,
-    /// ONNX Runtime intra-op threads per session.
-    #[arg(long, env = "POSEFUSE_INTRA_THREADS", default_value_t = RT.intra_threads)]
+    /// ONNX Runtime intra-op threads per session (0: the worker's share of the cores, at most 4).
+    #[arg(long, env = "POSEFUSE_INTRA_THREADS", default_value_t = 0)]
     pub intra_threads: usize,
     /// Largest inference batch a worker forms from queued jobs.
     #[arg(long, env = "POSEFUSE_MAX_BATCH", default_value_t = RT.max_batch)]
     pub max_batch: usize,
-    /// Microseconds a worker waits for more jobs to fill a batch (0: batch only what is queued).
-    #[arg(long, env = "POSEFUSE_BATCH_WAIT_US", default_value_t = RT.batch_wait.as_micros() as u64)]
-    pub batch_wait_us: u64,
+    /// Microseconds a worker waits for more jobs to fill a batch (0: batch only what is queued;
+    /// default: 0 with one worker, 200 with several).
+    #[arg(long, env = "POSEFUSE_BATCH_WAIT_US")]
+    pub batch_wait_us: Option<u64>,
     /// Inference jobs (one per person and network) that may wait; beyond, requests get 429.
     #[arg(long, env = "POSEFUSE_QUEUE_SIZE", default_value_t = RT.queue_size)]
     pub queue_size: usize,
 }
 
 impl RuntimeArgs {
-    /// The runtime configuration these flags describe.
+    /// The runtime configuration these flags describe (unset sizes from the machine's cores).
     pub fn runtime_config(&self) -> RuntimeConfig {
+        let sizing = Sizing::detect();
+        let workers = if self.workers == 0 { sizing.workers } else { self.workers };
+        let intra_threads = if self.intra_threads == 0 { sizing.intra_threads } else { self.intra_threads };
+        let batch_wait_us = self.batch_wait_us.unwrap_or(if workers > 1 { sizing.batch_wait_us.max(200) } else { 0 });
         RuntimeConfig {
             ort_lib: self.ort_lib.clone(),
-            workers: self.workers,
-            intra_threads: self.intra_threads,
+            workers,
+            intra_threads,
             max_batch: self.max_batch,
-            batch_wait: Duration::from_micros(self.batch_wait_us),
+            batch_wait: Duration::from_micros(batch_wait_us),
             queue_size: self.queue_size,
         }
     }
@@ -75,10 +84,44 @@ pub struct ServeArgs {
     /// Log as JSON lines instead of text.
     #[arg(long, env = "POSEFUSE_LOG_JSON")]
     pub log_json: bool,
+    /// Seconds the drain may take after SIGTERM (once the listener closes); then the process
+    /// exits anyway, logging what was cut.
+    #[arg(long, env = "POSEFUSE_DRAIN_TIMEOUT", default_value_t = ServerConfig::DRAIN_TIMEOUT_S)]
+    pub drain_timeout: u64,
+    /// Milliseconds the listener keeps accepting after SIGTERM while readiness already says 503
+    /// (time for a load balancer to notice).
+    #[arg(long, env = "POSEFUSE_DRAIN_DELAY_MS", default_value_t = 0)]
+    pub drain_delay_ms: u64,
+    /// Milliseconds a client has to send a request's headers (HTTP/1).
+    #[arg(long, env = "POSEFUSE_HEADER_TIMEOUT_MS", default_value_t = CONN.header_read_timeout.as_millis() as u64)]
+    pub header_timeout_ms: u64,
+    /// Longest pause, in milliseconds, between two chunks of a request body.
+    #[arg(long, env = "POSEFUSE_BODY_TIMEOUT_MS", default_value_t = CONN.body_read_timeout.as_millis() as u64)]
+    pub body_timeout_ms: u64,
+    /// Milliseconds without a byte in either direction after which a connection is closed.
+    #[arg(long, env = "POSEFUSE_IDLE_TIMEOUT_MS", default_value_t = CONN.idle_timeout.as_millis() as u64)]
+    pub idle_timeout_ms: u64,
+    /// Open connections at most (0: the file-descriptor limit less a reserve). At the cap the
+    /// connection idle the longest is closed; when none is idle, new ones are closed at once.
+    #[arg(long, env = "POSEFUSE_MAX_CONNECTIONS", default_value_t = CONN.max_connections)]
+    pub max_connections: usize,
+    /// Frames decoded and pre-processed at once (0: one per core).
+    #[arg(long, env = "POSEFUSE_DECODE_PERMITS", default_value_t = 0)]
+    pub decode_permits: usize,
+    /// Requests that may wait for a decode permit; beyond, 429 at once (0: 8 per permit).
+    #[arg(long, env = "POSEFUSE_ADMISSION_QUEUE", default_value_t = 0)]
+    pub admission_queue: usize,
+    /// Persons per frame at most (422 beyond).
+    #[arg(long, env = "POSEFUSE_MAX_PERSONS", default_value_t = FrameLimits::DEFAULT.max_persons)]
+    pub max_persons: usize,
+    /// LiDAR points per frame at most (422 beyond).
+    #[arg(long, env = "POSEFUSE_MAX_POINTS", default_value_t = FrameLimits::DEFAULT.max_points)]
+    pub max_points: usize,
 }
 
 impl ServeArgs {
-    /// The server configuration these flags describe.
+    /// The server configuration these flags describe (0 for decode permits and the admission
+    /// queue: sized from the cores at start-up).
     pub fn server_config(&self) -> ServerConfig {
         ServerConfig {
             model_dir: self.runtime.model_dir.clone(),
@@ -86,6 +129,17 @@ impl ServeArgs {
             body_limit: self.body_limit,
             request_timeout: Duration::from_millis(self.request_timeout_ms),
             batch_concurrency: self.batch_concurrency,
+            drain_timeout: Duration::from_secs(self.drain_timeout),
+            drain_delay: Duration::from_millis(self.drain_delay_ms),
+            conn: ConnLimits {
+                header_read_timeout: Duration::from_millis(self.header_timeout_ms),
+                body_read_timeout: Duration::from_millis(self.body_timeout_ms),
+                idle_timeout: Duration::from_millis(self.idle_timeout_ms),
+                max_connections: self.max_connections,
+            },
+            decode_permits: self.decode_permits,
+            admission_queue: self.admission_queue,
+            frame_limits: FrameLimits { max_persons: self.max_persons, max_points: self.max_points },
         }
     }
 }

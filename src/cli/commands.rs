@@ -25,18 +25,13 @@ fn tokio_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
     Ok(tokio::runtime::Builder::new_multi_thread().enable_all().build()?)
 }
 
-/// `posefuse serve`.
+/// `posefuse serve`: SIGHUP reloads the bundle, SIGTERM or Ctrl-C drains; a completed drain
+/// exits 0.
 pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
     init_tracing(a.log_json);
     let config = a.server_config();
     tracing::info!(addr = %a.addr, ?config, "effective configuration");
-    tokio_runtime()?.block_on(async move {
-        let listener = tokio::net::TcpListener::bind(a.addr)
-            .await
-            .map_err(|e| anyhow::anyhow!("cannot listen on {}: {e}", a.addr))?;
-        posefuse::server::run(config, listener, posefuse::server::shutdown_signal()).await?;
-        Ok(())
-    })
+    tokio_runtime()?.block_on(posefuse::server::serve_with_signals(config, a.addr))
 }
 
 /// Starts the runtime for a CLI command and waits for warm-up.

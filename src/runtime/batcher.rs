@@ -242,7 +242,7 @@ impl Runtime {
         let (reply, rx) = oneshot::channel();
         let tx = self.tx.as_ref().ok_or_else(|| Error::Unavailable("shutting down".into()))?;
         match tx.try_send(Job { work, enqueued: Instant::now(), reply }) {
-            Ok(()) => {}
+            Ok(()) => metrics::gauge!("posefuse_queue_depth").set(tx.len() as f64),
             Err(TrySendError::Full(_)) => return Err(Error::Overloaded),
             Err(TrySendError::Disconnected(_)) => return Err(Error::Unavailable("shutting down".into())),
         }
@@ -287,6 +287,7 @@ fn worker_loop(models: &mut Models, rx: &Receiver<Job>, gate: &Gate, max_batch: 
                 None => break,
             }
         }
+        metrics::gauge!("posefuse_queue_depth").set(rx.len() as f64);
         // Callers that gave up (timeout, disconnect) are not worth computing for.
         jobs.retain(|j| !j.reply.is_closed());
         run_round(models, jobs);

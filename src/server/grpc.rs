@@ -11,6 +11,7 @@ use super::errors::grpc_status;
 use super::AppState;
 use crate::error::{Error, Result};
 use crate::frame::{Box2d, Box3d, CameraCalibration, Frame, Person, Points, RequestedMode};
+use crate::service::admission::Ticket;
 use crate::service::api::{Mode, PoseResponse};
 
 /// Generated messages, server and client of `proto/posefuse.proto`.
@@ -34,6 +35,22 @@ pub fn router<H: Health>(state: AppState, health: HealthServer<H>) -> axum::Rout
         .prepare()
         .into_axum_router()
         .layer(axum::middleware::map_response(too_large_is_resource_exhausted))
+        .layer(axum::middleware::map_response(undecodable_is_invalid_argument))
+}
+
+/// tonic reports a message that is not valid protobuf as INTERNAL; it is the client's error.
+async fn undecodable_is_invalid_argument(mut resp: axum::response::Response) -> axum::response::Response {
+    let h = resp.headers();
+    let internal = h.get("grpc-status").is_some_and(|v| v == "13");
+    let undecodable = h.get("grpc-message").and_then(|v| v.to_str().ok()).is_some_and(is_decode_error);
+    if internal && undecodable {
+        resp.headers_mut().insert("grpc-status", axum::http::HeaderValue::from_static("3"));
+    }
+    resp
+}
+
+fn is_decode_error(message: &str) -> bool {
+    message.contains("decode Protobuf") || message.contains("decode%20Protobuf")
 }
 
 /// tonic reports an over-limit message as OUT_OF_RANGE; the API promises RESOURCE_EXHAUSTED
@@ -224,9 +241,21 @@ pub fn response_to_proto(r: PoseResponse) -> proto::PredictResponse {
     }
 }
 
-async fn predict_message(state: &AppState, msg: proto::PredictRequest) -> Result<proto::PredictResponse> {
+/// The path of the unary `Predict` method (admitted before its message is read).
+pub const PREDICT_PATH: &str = "/posefuse.v1.Posefuse/Predict";
+
+async fn predict_message(
+    state: &AppState,
+    msg: proto::PredictRequest,
+    ticket: Option<&Ticket>,
+) -> Result<proto::PredictResponse> {
+    let (p, timeout) = (&state.predictor, state.request_timeout);
     let (frame, image) = frame_from_proto(msg)?;
-    state.predictor.answer(frame, image, state.request_timeout).await.map(response_to_proto)
+    let r = match ticket {
+        Some(t) => p.answer_admitted(t, frame, image, timeout).await,
+        None => p.answer(frame, image, timeout).await,
+    };
+    r.map(response_to_proto)
 }
 
 fn count(method: &'static str, code: tonic::Code) {
@@ -241,7 +270,8 @@ impl Posefuse for GrpcService {
         &self,
         request: Request<proto::PredictRequest>,
     ) -> std::result::Result<Response<proto::PredictResponse>, Status> {
-        let r = predict_message(&self.state, request.into_inner()).await;
+        let ticket = request.extensions().get::<std::sync::Arc<Ticket>>().cloned();
+        let r = predict_message(&self.state, request.into_inner(), ticket.as_deref()).await;
         count("Predict", r.as_ref().map_or_else(super::errors::grpc_code, |_| tonic::Code::Ok));
         r.map(Response::new).map_err(|e| grpc_status(&e))
     }
@@ -254,8 +284,11 @@ impl Posefuse for GrpcService {
     ) -> std::result::Result<Response<Self::PredictStreamStream>, Status> {
         let state = self.state.clone();
         let concurrency = state.batch_concurrency;
-        let out = request
-            .into_inner()
+        // On drain the messages already read finish, then the stream ends with UNAVAILABLE.
+        let input = super::lifecycle::end_on_drain(request.into_inner(), state.drain.clone(), || {
+            Err(Status::unavailable("the server is shutting down: no further messages are read"))
+        });
+        let out = input
             .enumerate()
             .map(move |(i, msg)| {
                 let state = state.clone();
@@ -266,9 +299,12 @@ impl Posefuse for GrpcService {
                         Err(s) if s.code() == tonic::Code::OutOfRange => {
                             return Err(Status::resource_exhausted(s.message().to_string()))
                         }
+                        Err(s) if s.code() == tonic::Code::Internal && is_decode_error(s.message()) => {
+                            return Err(Status::invalid_argument(s.message().to_string()))
+                        }
                         Err(s) => return Err(s),
                     };
-                    let result = match predict_message(&state, msg).await {
+                    let result = match predict_message(&state, msg, None).await {
                         Ok(r) => proto::stream_response::Result::Response(r),
                         Err(e) => proto::stream_response::Result::Error(proto::Error {
                             code: e.code().to_string(),

@@ -18,7 +18,7 @@ use crate::error::{Error, Result};
 use crate::eval::EvaluateResponse;
 use crate::frame::Frame;
 use crate::service::api::{BatchItem, ErrorBody, HealthResponse, PoseResponse};
-use crate::service::json::{from_value, parse_json};
+use crate::service::json::parse_json;
 
 const NDJSON: &str = "application/x-ndjson";
 
@@ -32,11 +32,13 @@ pub fn router(state: AppState) -> Router {
         .route("/healthz", get(healthz))
         .route("/readyz", get(readyz))
         .route("/v1/models", get(models))
+        .route("/v1/models:reload", post(super::reload::reload))
         .route("/metrics", get(metrics_text))
         .route("/openapi.json", get(openapi))
         .merge(super::viewer::routes())
         .merge(super::kserve::rest::routes())
         .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed)
         .layer(axum::middleware::from_fn(count_requests))
         .layer(axum::extract::DefaultBodyLimit::max(limit))
         .with_state(state)
@@ -51,6 +53,13 @@ async fn count_requests(req: Request, next: Next) -> Response {
     resp
 }
 
+async fn method_not_allowed(req: Request) -> Response {
+    let e = Error::Malformed(format!("method {} is not allowed on {}", req.method(), req.uri().path()));
+    let mut resp = e.into_response();
+    *resp.status_mut() = StatusCode::METHOD_NOT_ALLOWED;
+    resp
+}
+
 async fn not_found(req: Request) -> Error {
     Error::NotFound(format!("no route for {} {}", req.method(), req.uri().path()))
 }
@@ -59,14 +68,27 @@ async fn not_found(req: Request) -> Error {
 /// (413 over the limit, 400 for syntax, 422 naming the field for missing or mistyped fields).
 pub struct ApiJson<T>(pub T);
 
-impl<T: DeserializeOwned> FromRequest<AppState> for ApiJson<T> {
+impl<T: DeserializeOwned + Send + 'static> FromRequest<AppState> for ApiJson<T> {
     type Rejection = Error;
 
     async fn from_request(req: Request, state: &AppState) -> Result<Self> {
         check_json_content_type(req.headers())?;
         let bytes = Bytes::from_request(req, state).await.map_err(|r| bytes_rejection(&r, state.body_limit))?;
-        parse_json(&bytes).map(ApiJson)
+        parse_json_off_executor(bytes).await.map(ApiJson)
     }
+}
+
+/// Bodies larger than this are parsed on the blocking pool, so that large requests do not hold
+/// the async threads (and with them health checks and other clients).
+const PARSE_ON_EXECUTOR_MAX: usize = 64 * 1024;
+
+async fn parse_json_off_executor<T: DeserializeOwned + Send + 'static>(bytes: Bytes) -> Result<T> {
+    if bytes.len() <= PARSE_ON_EXECUTOR_MAX {
+        return parse_json(&bytes);
+    }
+    tokio::task::spawn_blocking(move || parse_json(&bytes))
+        .await
+        .map_err(|e| Error::Runtime(format!("parse task failed: {e}")))?
 }
 
 fn bytes_rejection(r: &axum::extract::rejection::BytesRejection, limit: usize) -> Error {
@@ -95,8 +117,11 @@ fn check_json_content_type(headers: &HeaderMap) -> Result<()> {
     (status = 503, description = "Warming up", body = ErrorBody),
     (status = 504, description = "Deadline passed", body = ErrorBody),
 ))]
-async fn poses(State(state): State<AppState>, ApiJson(frame): ApiJson<Frame>) -> Result<Json<PoseResponse>> {
-    state.predictor.answer(frame, None, state.request_timeout).await.map(Json)
+async fn poses(State(state): State<AppState>, req: Request) -> Result<Json<PoseResponse>> {
+    // Admitted before the body is read: a full server answers 429 without reading or parsing.
+    let ticket = state.predictor.admission().admit()?;
+    let ApiJson(frame) = ApiJson::<Frame>::from_request(req, &state).await?;
+    state.predictor.answer_admitted(&ticket, frame, None, state.request_timeout).await.map(Json)
 }
 
 /// Several frames: a JSON array in and out, or NDJSON (`Content-Type: application/x-ndjson`)
@@ -105,6 +130,7 @@ async fn poses(State(state): State<AppState>, ApiJson(frame): ApiJson<Frame>) ->
     (status = 200, description = "One item per frame, in order", body = Vec<BatchItem>),
     (status = 400, description = "Malformed JSON", body = ErrorBody),
     (status = 413, description = "Body over the limit", body = ErrorBody),
+    (status = 422, description = "The body is not an array of frames", body = ErrorBody),
 ))]
 async fn batch(State(state): State<AppState>, req: Request) -> Response {
     let is_ndjson = req
@@ -115,14 +141,18 @@ async fn batch(State(state): State<AppState>, req: Request) -> Response {
     if is_ndjson {
         return ndjson_batch(state, req.into_body());
     }
-    let values: Vec<serde_json::Value> = match ApiJson::from_request(req, &state).await {
+    let values: Vec<Box<serde_json::value::RawValue>> = match ApiJson::from_request(req, &state).await {
         Ok(ApiJson(v)) => v,
         Err(e) => return e.into_response(),
     };
     let (concurrency, timeout) = (state.batch_concurrency, state.request_timeout);
     let predictor = &state.predictor;
     let items: Vec<BatchItem> = futures::stream::iter(values.into_iter().enumerate())
-        .map(|(i, v)| predictor.answer_item(i, from_value::<Frame>(v), timeout))
+        .map(|(i, v)| async move {
+            predictor
+                .answer_item(i, parse_json_off_executor::<Frame>(Bytes::from(v.get().to_owned())).await, timeout)
+                .await
+        })
         .buffered(concurrency)
         .collect()
         .await;
@@ -133,7 +163,11 @@ fn ndjson_batch(state: AppState, body: Body) -> Response {
     let limit = state.body_limit;
     let concurrency = state.batch_concurrency;
     let (predictor, timeout) = (state.predictor.clone(), state.request_timeout);
-    let lines = ndjson_lines(body.into_data_stream(), limit);
+    // On drain the lines already read finish; one last item says no more are read.
+    let lines =
+        super::lifecycle::end_on_drain(ndjson_lines(body.into_data_stream(), limit), state.drain.clone(), || {
+            Err(Error::Unavailable("the server is shutting down: no further lines are read".into()))
+        });
     let out = lines
         .enumerate()
         .map(move |(i, line)| {
@@ -222,12 +256,16 @@ where
     (status = 200, description = "Predictions and metrics", body = EvaluateResponse),
     (status = 400, description = "Malformed JSON", body = ErrorBody),
     (status = 413, description = "Body over the limit", body = ErrorBody),
+    (status = 422, description = "The body is not an array of frames, or ground truth is invalid", body = ErrorBody),
 ))]
 async fn evaluate(
     State(state): State<AppState>,
-    ApiJson(values): ApiJson<Vec<serde_json::Value>>,
+    ApiJson(values): ApiJson<Vec<Box<serde_json::value::RawValue>>>,
 ) -> Result<Json<EvaluateResponse>> {
-    let frames = values.into_iter().map(from_value::<Frame>).collect();
+    let frames = futures::future::join_all(
+        values.into_iter().map(|v| parse_json_off_executor::<Frame>(Bytes::from(v.get().to_owned()))),
+    )
+    .await;
     crate::eval::evaluate_frames(&state.predictor, frames, state.batch_concurrency, state.request_timeout)
         .await
         .map(Json)
@@ -275,7 +313,7 @@ async fn metrics_text(State(state): State<AppState>) -> Response {
 #[derive(utoipa::OpenApi)]
 #[openapi(
     info(title = "posefuse", description = "Multi-modal (camera + LiDAR) 3D pedestrian pose estimation"),
-    paths(poses, batch, evaluate, healthz, readyz, models, metrics_text, openapi)
+    paths(poses, batch, evaluate, healthz, readyz, models, super::reload::reload, metrics_text, openapi)
 )]
 struct ApiDoc;
 

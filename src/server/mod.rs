@@ -1,26 +1,34 @@
 //! The transports and the server's lifecycle: HTTP (axum) and gRPC (tonic) on one port, the
-//! error mapping, health, Prometheus metrics, start-up, readiness and shutdown. Every request is
-//! answered by [`crate::service::Predictor`]; nothing here decides anything about a pose.
+//! error mapping, health, Prometheus metrics, connections, start-up, readiness, reload and the
+//! drain. Every request is answered by [`crate::service::Predictor`]; nothing here decides
+//! anything about a pose.
 
+pub mod conn;
 pub mod errors;
 pub mod grpc;
 pub mod health;
 pub mod http;
 pub mod kserve;
+pub mod lifecycle;
 pub mod metrics;
+pub mod reload;
 pub mod viewer;
 
 use std::future::Future;
+use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::Arc;
 use std::time::Duration;
 
 use axum::extract::Request;
+use tokio_util::sync::CancellationToken;
 use tower::ServiceExt;
 
 use crate::error::{Error, Result};
 use crate::runtime::{Runtime, RuntimeConfig};
+use crate::service::admission::{self, Admission};
+use crate::service::limits::FrameLimits;
 use crate::service::Predictor;
 
 /// Everything `run` needs.
@@ -31,6 +39,18 @@ pub struct ServerConfig {
     pub body_limit: usize,
     pub request_timeout: Duration,
     pub batch_concurrency: usize,
+    /// How long the drain may take once the listener closes.
+    pub drain_timeout: Duration,
+    /// How long the listener keeps accepting after the shutdown signal (readiness already 503).
+    pub drain_delay: Duration,
+    /// Timeouts and the connection cap.
+    pub conn: conn::ConnLimits,
+    /// Frames decoded and pre-processed at once.
+    pub decode_permits: usize,
+    /// Requests that may wait for a decode permit before 429.
+    pub admission_queue: usize,
+    /// Persons and points per frame.
+    pub frame_limits: FrameLimits,
 }
 
 impl ServerConfig {
@@ -42,8 +62,11 @@ impl ServerConfig {
     pub const REQUEST_TIMEOUT_MS: u64 = 10_000;
     /// Default frames of one batch or stream predicted concurrently.
     pub const BATCH_CONCURRENCY: usize = 8;
+    /// Default drain deadline, seconds.
+    pub const DRAIN_TIMEOUT_S: u64 = 30;
 
-    /// Defaults for a bundle directory (those of `posefuse serve`).
+    /// Defaults for a bundle directory (those of `posefuse serve`, with the machine-dependent
+    /// sizes fixed: 2 decode permits, 64 waiting).
     pub fn new(model_dir: impl Into<PathBuf>) -> ServerConfig {
         ServerConfig {
             model_dir: model_dir.into(),
@@ -51,6 +74,12 @@ impl ServerConfig {
             body_limit: Self::BODY_LIMIT,
             request_timeout: Duration::from_millis(Self::REQUEST_TIMEOUT_MS),
             batch_concurrency: Self::BATCH_CONCURRENCY,
+            drain_timeout: Duration::from_secs(Self::DRAIN_TIMEOUT_S),
+            drain_delay: Duration::ZERO,
+            conn: conn::ConnLimits::default(),
+            decode_permits: 2,
+            admission_queue: 64,
+            frame_limits: FrameLimits::default(),
         }
     }
 }
@@ -63,6 +92,10 @@ pub struct AppState {
     pub request_timeout: Duration,
     pub batch_concurrency: usize,
     pub shutting_down: Arc<AtomicBool>,
+    /// Cancelled when the drain starts (the listener closes): streams stop reading input.
+    pub drain: CancellationToken,
+    /// Swaps bundles while serving.
+    pub reloader: Arc<reload::Reloader>,
     /// Warm-up done and the gRPC health status published (what /readyz reports).
     pub ready: Arc<AtomicBool>,
     pub prometheus: Option<metrics_exporter_prometheus::PrometheusHandle>,
@@ -71,22 +104,40 @@ pub struct AppState {
 /// A loaded server: bundle validated, sessions built, warm-up under way.
 pub struct App {
     state: AppState,
+    drain_timeout: Duration,
+    drain_delay: Duration,
+    conn: conn::ConnLimits,
 }
 
 impl App {
     /// Validates the bundle, builds the sessions and starts warming up (blocking).
     pub fn start(config: &ServerConfig) -> Result<App> {
         let runtime = Runtime::load(&config.model_dir, &config.runtime)?;
+        let admission = Admission::new(config.decode_permits, config.admission_queue);
+        let predictor = Predictor::with_admission(runtime, admission).with_limits(config.frame_limits);
+        let reloader = reload::Reloader::new(predictor.clone(), config.model_dir.clone(), config.runtime.clone());
         let state = AppState {
-            predictor: Predictor::new(runtime),
+            predictor,
             body_limit: config.body_limit,
             request_timeout: config.request_timeout,
             batch_concurrency: config.batch_concurrency.max(1),
             shutting_down: Arc::new(AtomicBool::new(false)),
+            drain: CancellationToken::new(),
+            reloader: Arc::new(reloader),
             ready: Arc::new(AtomicBool::new(false)),
             prometheus: metrics::install(),
         };
-        Ok(App { state })
+        Ok(App {
+            state,
+            drain_timeout: config.drain_timeout,
+            drain_delay: config.drain_delay,
+            conn: config.conn.clone(),
+        })
+    }
+
+    /// Swaps bundles while serving (`POST /v1/models:reload`, SIGHUP).
+    pub fn reloader(&self) -> &Arc<reload::Reloader> {
+        &self.state.reloader
     }
 
     /// The predictor (runtime access for tests and tools).
@@ -94,7 +145,10 @@ impl App {
         &self.state.predictor
     }
 
-    /// Serves on `listener` until `shutdown` completes, then finishes in-flight requests.
+    /// Serves on `listener` until `shutdown` completes, then drains: readiness goes 503 /
+    /// NOT_SERVING at once, the listener keeps accepting for the drain delay, then closes;
+    /// requests in hand finish, streams stop reading, and after the drain timeout whatever is
+    /// left is cut (logged). Returns Ok in every case of a completed drain.
     pub async fn serve(
         self,
         listener: tokio::net::TcpListener,
@@ -109,16 +163,30 @@ impl App {
         let http_router = http::router(state.clone());
         let grpc_router = grpc::router(state.clone(), health_service);
         // One port: `Content-Type: application/grpc…` goes to tonic, everything else to the HTTP routes.
-        let app = axum::Router::new().fallback_service(tower::service_fn(move |req: Request| {
-            let (h, g) = (http_router.clone(), grpc_router.clone());
-            async move {
-                if is_grpc(&req) {
-                    g.oneshot(req).await
-                } else {
-                    h.oneshot(req).await
+        let in_flight = Arc::new(lifecycle::InFlight::default());
+        let admission = state.predictor.admission().clone();
+        let app = axum::Router::new()
+            .fallback_service(tower::service_fn(move |mut req: Request| {
+                let (h, g) = (http_router.clone(), grpc_router.clone());
+                // A unary frame is admitted before its message is read (429 at once when full).
+                let admitted = (is_grpc(&req) && req.uri().path() == grpc::PREDICT_PATH).then(|| admission.admit());
+                async move {
+                    if let Some(admitted) = admitted {
+                        match admitted {
+                            Ok(ticket) => {
+                                req.extensions_mut().insert(Arc::new(ticket));
+                            }
+                            Err(e) => return Ok(errors::grpc_status(&e).into_http()),
+                        }
+                    }
+                    if is_grpc(&req) {
+                        g.oneshot(req).await
+                    } else {
+                        h.oneshot(req).await
+                    }
                 }
-            }
-        }));
+            }))
+            .layer(axum::middleware::from_fn_with_state(in_flight.clone(), lifecycle::count_in_flight));
         let ready_watch = {
             let (runtime, reporter, ready) = (state.predictor.runtime().clone(), reporter.clone(), state.ready.clone());
             tokio::spawn(async move {
@@ -133,31 +201,48 @@ impl App {
             })
         };
         let flag = state.shutting_down.clone();
+        let drain = state.drain.clone();
+        let delay = self.drain_delay;
         let on_shutdown = {
             let reporter = reporter.clone();
+            let drain = drain.clone();
             async move {
                 shutdown.await;
                 flag.store(true, Ordering::SeqCst);
-                tracing::info!("shutting down: finishing in-flight requests");
                 reporter.set_service_status("", tonic_health::ServingStatus::NotServing).await;
                 reporter.set_service_status(grpc_name, tonic_health::ServingStatus::NotServing).await;
+                tracing::info!(drain_delay_ms = delay.as_millis() as u64, "shutting down: readiness is 503");
+                tokio::time::sleep(delay).await;
+                tracing::info!("draining: listener closed, finishing in-flight requests, streams told to end");
+                drain.cancel();
             }
         };
         let addr = listener.local_addr().ok();
-        tracing::info!(?addr, "serving HTTP and gRPC");
-        // Responses go out as several small writes (headers, body, gRPC trailers); Nagle's
-        // algorithm would hold them back for the peer's delayed ACK (~40 ms).
-        let listener = axum::serve::ListenerExt::tap_io(listener, |tcp: &mut tokio::net::TcpStream| {
-            let _ = tcp.set_nodelay(true);
-        });
-        let served = axum::serve(listener, app).with_graceful_shutdown(on_shutdown).await;
+        let mut limits = self.conn.clone();
+        if limits.max_connections == 0 {
+            limits.max_connections = conn::default_max_connections(conn::raise_fd_limit());
+        }
+        tracing::info!(?addr, max_connections = limits.max_connections, "serving HTTP and gRPC");
+        let registry = Arc::new(conn::Registry::default());
+        let (_, report) =
+            tokio::join!(on_shutdown, conn::serve(listener, app, limits, registry, drain.clone(), self.drain_timeout));
+        let cut_requests = in_flight.get();
+        if report.connections_cut > 0 || cut_requests > 0 {
+            tracing::warn!(
+                connections = report.connections_cut,
+                requests = cut_requests,
+                "drain deadline passed: cut what was still open"
+            );
+        } else {
+            tracing::info!("drained: every connection finished");
+        }
         ready_watch.abort();
         let runtime = state.predictor.runtime().clone();
         drop(state);
         drop(self);
         // Joining the workers blocks; keep it off the executor.
         let _ = tokio::task::spawn_blocking(move || drop(runtime)).await;
-        served.map_err(|e| Error::Io(format!("server: {e}")))
+        Ok(())
     }
 }
 
@@ -183,24 +268,39 @@ pub async fn run(
 
 /// Completes on SIGTERM or Ctrl-C.
 pub async fn shutdown_signal() {
-    let ctrl_c = async {
-        if tokio::signal::ctrl_c().await.is_err() {
-            std::future::pending::<()>().await;
-        }
-    };
+    lifecycle::terminate().await
+}
+
+/// `posefuse serve` after parsing: SIGHUP reloads (handled before loading, so that an early one
+/// does not kill the process), SIGTERM/Ctrl-C drains; a completed drain exits 0.
+pub async fn serve_with_signals(mut config: ServerConfig, addr: SocketAddr) -> anyhow::Result<()> {
+    let (set_reloader, reloader) = tokio::sync::watch::channel(None);
     #[cfg(unix)]
-    let term = async {
-        match tokio::signal::unix::signal(tokio::signal::unix::SignalKind::terminate()) {
-            Ok(mut s) => {
-                s.recv().await;
-            }
-            Err(_) => std::future::pending::<()>().await,
-        }
-    };
+    lifecycle::reload_on_hangup(reloader)?;
     #[cfg(not(unix))]
-    let term = std::future::pending::<()>();
-    tokio::select! {
-        _ = ctrl_c => {},
-        _ = term => {},
+    drop(reloader);
+    let sizing = admission::Sizing::detect();
+    if config.decode_permits == 0 {
+        config.decode_permits = sizing.decode_permits;
     }
+    if config.admission_queue == 0 {
+        config.admission_queue = 8 * config.decode_permits;
+    }
+    tracing::info!(
+        cores = sizing.cores,
+        workers = config.runtime.workers,
+        intra_threads = config.runtime.intra_threads,
+        batch_wait_us = config.runtime.batch_wait.as_micros() as u64,
+        decode_permits = config.decode_permits,
+        admission_queue = config.admission_queue,
+        "sizing"
+    );
+    let listener =
+        tokio::net::TcpListener::bind(addr).await.map_err(|e| anyhow::anyhow!("cannot listen on {addr}: {e}"))?;
+    let app = tokio::task::spawn_blocking(move || App::start(&config))
+        .await
+        .map_err(|e| Error::Runtime(format!("start-up task failed: {e}")))??;
+    let _ = set_reloader.send(Some(app.reloader().clone()));
+    app.serve(listener, shutdown_signal()).await?;
+    Ok(())
 }

@@ -8,7 +8,17 @@ use crate::error::{Error, Result};
 /// Parses JSON; trailing data is a syntax error.
 pub fn parse_json<T: DeserializeOwned>(bytes: &[u8]) -> Result<T> {
     let mut de = serde_json::Deserializer::from_slice(bytes);
-    let value = serde_path_to_error::deserialize(&mut de).map_err(path_error)?;
+    let value = serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        // serde_json reports some type errors (a number for an enum, a 4-number array for a
+        // 3-number one) as syntax errors; in well-formed JSON they are the field's fault.
+        let well_formed = serde_json::from_slice::<serde::de::IgnoredAny>(bytes).is_ok();
+        if well_formed && e.inner().classify() != serde_json::error::Category::Data {
+            let path = e.path().to_string();
+            let field = if path == "." || path.is_empty() { "body".to_string() } else { path };
+            return Error::field(field, e.into_inner().to_string());
+        }
+        path_error(e)
+    })?;
     de.end().map_err(|e| Error::Malformed(format!("invalid JSON: {e}")))?;
     Ok(value)
 }

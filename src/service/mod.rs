@@ -4,8 +4,10 @@
 //! timings. HTTP, gRPC, the CLI and the evaluation all call [`Predictor`]; none of them decides
 //! anything about a pose. See docs/ARCHITECTURE.md.
 
+pub mod admission;
 pub mod api;
 pub mod json;
+pub mod limits;
 pub mod policy;
 mod predict;
 

@@ -3,12 +3,14 @@
 //! `smoothed_features` (smoothing + sampling), `fused_points`, `decode_heatmaps`, `lift`,
 //! `keypoints_to_vehicle`, `Camera::project_points`); this file only decides the mode and moves data.
 
-use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
 use base64::Engine;
 use image::RgbImage;
 
+use super::admission::{Admission, Ticket};
 use super::api::{
     BatchItem, ErrorDetail, KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, SkippedPerson, Timings,
 };
@@ -23,10 +25,13 @@ use crate::pipeline::{
 };
 use crate::runtime::{Bundle, ChainStep, JobOutput, ModelKind, Runtime};
 
-/// Runs frames through the pipeline and the runtime.
+/// Runs frames through the pipeline and the runtime. The runtime can be swapped while serving
+/// ([`Predictor::swap`]); a request keeps the runtime it started on.
 #[derive(Clone)]
 pub struct Predictor {
-    runtime: Arc<Runtime>,
+    runtime: Arc<RwLock<Arc<Runtime>>>,
+    admission: Arc<Admission>,
+    limits: super::limits::FrameLimits,
 }
 
 /// The camera image of a frame after decoding.
@@ -78,40 +83,82 @@ fn ms(d: Duration) -> f64 {
 }
 
 impl Predictor {
-    /// A predictor over a started runtime.
+    /// A predictor over a started runtime, with unbounded admission.
     pub fn new(runtime: Arc<Runtime>) -> Predictor {
-        Predictor { runtime }
+        Predictor::with_admission(runtime, Admission::unbounded())
     }
 
-    /// The bundle the runtime serves.
-    pub fn bundle(&self) -> &Bundle {
-        self.runtime.bundle()
+    /// A predictor whose pre-processing is admitted through `admission`.
+    pub fn with_admission(runtime: Arc<Runtime>, admission: Arc<Admission>) -> Predictor {
+        Predictor { runtime: Arc::new(RwLock::new(runtime)), admission, limits: Default::default() }
     }
 
-    /// The runtime (readiness, pausing).
-    pub fn runtime(&self) -> &Arc<Runtime> {
-        &self.runtime
+    /// The same predictor with other per-frame limits.
+    pub fn with_limits(mut self, limits: super::limits::FrameLimits) -> Predictor {
+        self.limits = limits;
+        self
+    }
+
+    /// The bundle the runtime serves now.
+    pub fn bundle(&self) -> Arc<Bundle> {
+        self.runtime().bundle().clone()
+    }
+
+    /// The runtime serving now (readiness, pausing).
+    pub fn runtime(&self) -> Arc<Runtime> {
+        self.runtime.read().unwrap_or_else(|p| p.into_inner()).clone()
+    }
+
+    /// Serves new requests on `runtime` from now on and returns the previous one (requests that
+    /// started on it finish on it).
+    pub fn swap(&self, runtime: Arc<Runtime>) -> Arc<Runtime> {
+        std::mem::replace(&mut *self.runtime.write().unwrap_or_else(|p| p.into_inner()), runtime)
+    }
+
+    /// The admission gate in front of pre-processing.
+    pub fn admission(&self) -> &Arc<Admission> {
+        &self.admission
     }
 
     /// Poses for every person of `frame`. `raw_image` (JPEG/PNG bytes, as gRPC sends them)
-    /// replaces `frame.image` (base64) when given.
+    /// replaces `frame.image` (base64) when given. Dropping the future (deadline, client gone)
+    /// stops the frame's pre-processing at its next step and queues nothing more.
     pub async fn predict(&self, frame: Frame, raw_image: Option<Vec<u8>>) -> Result<PoseResponse> {
+        let ticket = self.admission.admit()?;
+        self.predict_admitted(&ticket, frame, raw_image).await
+    }
+
+    /// [`Predictor::predict`] for a frame admitted before its body was read.
+    pub async fn predict_admitted(
+        &self,
+        ticket: &Ticket,
+        frame: Frame,
+        raw_image: Option<Vec<u8>>,
+    ) -> Result<PoseResponse> {
         let started = Instant::now();
-        if !self.runtime.is_ready() {
+        let runtime = self.runtime();
+        if !runtime.is_ready() {
             return Err(Error::Unavailable("the models are warming up".into()));
         }
-        let bundle = self.runtime.bundle().clone();
+        let bundle = runtime.bundle().clone();
+        // A decode permit before any decoding (admission bounds how many wait for one).
+        let permit = self.admission.enter(ticket).await?;
+        let abandoned = Arc::new(AtomicBool::new(false));
+        let _abandon_on_drop = AbandonOnDrop(abandoned.clone());
+        let limits = self.limits;
         // Decoding and cropping are CPU work; keep them off the async executor.
         let plan = tokio::task::spawn_blocking(move || {
+            let _permit = permit;
             let cfg = bundle.config();
-            plan_frame(&frame, raw_image, cfg).map(|p| (p, frame.frame_id))
+            limits.check(&frame)?;
+            plan_frame(&frame, raw_image, cfg, &abandoned).map(|p| (p, frame.frame_id))
         })
         .await
         .map_err(|e| Error::Runtime(format!("pre-processing task failed: {e}")))?;
         let (plan, frame_id) = plan?;
         let camera = &plan.camera;
-        let results =
-            futures::future::try_join_all(plan.persons.into_iter().map(|p| self.run_person(p, camera))).await?;
+        let on = OnRuntime { runtime: &runtime };
+        let results = futures::future::try_join_all(plan.persons.into_iter().map(|p| on.run_person(p, camera))).await?;
         let mut timings =
             Timings { decode_ms: ms(plan.decode), preprocess_ms: ms(plan.preprocess), ..Timings::default() };
         let mut persons = Vec::with_capacity(results.len());
@@ -130,7 +177,7 @@ impl Predictor {
         timings.total_ms = ms(started.elapsed());
         metrics::histogram!("posefuse_preprocess_seconds").record(plan.preprocess.as_secs_f64() + post.as_secs_f64());
         metrics::histogram!("posefuse_decode_seconds").record(plan.decode.as_secs_f64());
-        let m = &self.runtime.bundle().manifest;
+        let m = &runtime.bundle().manifest;
         Ok(PoseResponse {
             frame_id,
             model: ModelRef { name: m.name.clone(), version: m.version.clone() },
@@ -140,10 +187,22 @@ impl Predictor {
         })
     }
 
-    /// [`Predictor::predict`] with a deadline, counted in the metrics: what every transport calls.
+    /// Admits the frame, then [`Predictor::answer_admitted`]: what every transport calls.
     pub async fn answer(&self, frame: Frame, raw_image: Option<Vec<u8>>, timeout: Duration) -> Result<PoseResponse> {
+        let ticket = self.admission.admit()?;
+        self.answer_admitted(&ticket, frame, raw_image, timeout).await
+    }
+
+    /// [`Predictor::predict_admitted`] with a deadline, counted in the metrics.
+    pub async fn answer_admitted(
+        &self,
+        ticket: &Ticket,
+        frame: Frame,
+        raw_image: Option<Vec<u8>>,
+        timeout: Duration,
+    ) -> Result<PoseResponse> {
         let t0 = Instant::now();
-        let r = match tokio::time::timeout(timeout, self.predict(frame, raw_image)).await {
+        let r = match tokio::time::timeout(timeout, self.predict_admitted(ticket, frame, raw_image)).await {
             Ok(r) => r,
             Err(_) => Err(Error::Timeout(timeout.as_millis() as u64)),
         };
@@ -160,7 +219,32 @@ impl Predictor {
             Err(e) => BatchItem::new(index, Err(e)),
         }
     }
+}
 
+/// Marks a frame's pre-processing abandoned when its request future is dropped.
+struct AbandonOnDrop(Arc<AtomicBool>);
+
+impl Drop for AbandonOnDrop {
+    fn drop(&mut self) {
+        self.0.store(true, Ordering::Relaxed);
+    }
+}
+
+/// Stops a frame's pre-processing once nobody waits for it.
+fn still_wanted(abandoned: &AtomicBool) -> Result<()> {
+    if abandoned.load(Ordering::Relaxed) {
+        metrics::counter!("posefuse_frames_abandoned_total").increment(1);
+        return Err(Error::Unavailable("the request was abandoned (deadline passed or client gone)".into()));
+    }
+    Ok(())
+}
+
+/// A request's view of the runtime it started on.
+struct OnRuntime<'a> {
+    runtime: &'a Runtime,
+}
+
+impl OnRuntime<'_> {
     async fn run_person(&self, p: PersonPlan, camera: &Camera) -> Result<(PersonPose, PersonTimes)> {
         let cfg = self.runtime.bundle().config();
         let (s, hm) = (cfg.image_size, cfg.heatmap_size as usize);
@@ -236,6 +320,11 @@ fn decode_image(frame: &Frame, raw_image: Option<Vec<u8>>) -> Result<ImageState>
             },
         },
     };
+    // The size is checked on the header, before any pixel is decoded.
+    let c = &frame.calibration;
+    if !super::limits::check_image_header(&bytes, c.width, c.height)? {
+        return Ok(ImageState::Undecodable("image is not a decodable JPEG or PNG: unreadable header".into()));
+    }
     let img = match image::load_from_memory(&bytes) {
         Ok(img) => img.into_rgb8(),
         Err(e) => return Ok(ImageState::Undecodable(format!("image is not a decodable JPEG or PNG: {e}"))),
@@ -256,7 +345,8 @@ fn decode_image(frame: &Frame, raw_image: Option<Vec<u8>>) -> Result<ImageState>
     Ok(ImageState::Decoded(img))
 }
 
-/// Persons per frame: each one scans every point of the frame, so the work is bounded here.
+/// Persons per frame by default: each one scans every point of the frame, so the work is
+/// bounded here (`--max-persons`).
 pub const MAX_PERSONS: usize = 256;
 
 /// A 2D box may extend past the image (a person close to the camera) but not without bound: the
@@ -273,30 +363,33 @@ fn check_box_size(b: &Box2d, field: &str, width: u32, height: u32) -> Result<()>
     Ok(())
 }
 
-fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -> Result<FramePlan> {
+fn plan_frame(
+    frame: &Frame,
+    raw_image: Option<Vec<u8>>,
+    cfg: &PipelineConfig,
+    abandoned: &AtomicBool,
+) -> Result<FramePlan> {
     frame.validate()?;
-    if frame.persons.len() > MAX_PERSONS {
-        return Err(Error::field(
-            "persons",
-            format!("{} persons; at most {MAX_PERSONS} per frame", frame.persons.len()),
-        ));
-    }
+    super::limits::check_declared_size(frame.calibration.width, frame.calibration.height)?;
     let camera = Camera::from_calibration(&frame.calibration)?;
     let t0 = Instant::now();
     let points = frame.points.decode()?;
     if points.is_empty() {
         return Err(Error::field("points", "no LiDAR points: every mode needs the points of the persons' boxes"));
     }
+    still_wanted(abandoned)?;
     let image = decode_image(frame, raw_image)?;
     let decode = t0.elapsed();
     let t1 = Instant::now();
     let mut persons = Vec::with_capacity(frame.persons.len());
+    let mut crop_budget = super::limits::CropBudget::for_image(camera.width, camera.height);
     let mut skipped = Vec::new();
     let mut skip = |index: usize, id: &str, e: Error| {
         metrics::counter!("posefuse_persons_skipped_total").increment(1);
         skipped.push(SkippedPerson { index, id: id.to_string(), error: ErrorDetail::from(&e) });
     };
     for (i, person) in frame.persons.iter().enumerate() {
+        still_wanted(abandoned)?;
         let field = format!("persons[{i}]");
         let box_2d = match &person.box_2d {
             Some(b) => {
@@ -341,7 +434,10 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
             continue;
         }
         let image_input = match (mode, &image, prepared.crop.as_ref()) {
-            (Mode::Fusion | Mode::Camera, ImageState::Decoded(img), Some(t)) => Some(normalize(&crop_rgb(img, t), cfg)),
+            (Mode::Fusion | Mode::Camera, ImageState::Decoded(img), Some(t)) => {
+                crop_budget.spend(t.side(), &field)?;
+                Some(normalize(&crop_rgb(img, t), cfg))
+            }
             (Mode::Fusion | Mode::Camera, _, _) => {
                 return Err(Error::Runtime(format!("{field}: camera mode chosen without a crop")));
             }

@@ -1,0 +1,586 @@
+//! Faults and load, each on a loopback server with bounded counts: the drain (half-open
+//! connections, a running stream), connection timeouts and the cap, model reload under load,
+//! work that stops when nobody waits, and checks before decoding.
+
+mod server_support;
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use posefuse::frame::{Frame, Person, Points, RequestedMode};
+use serde_json::{json, Value};
+use server_support::*;
+use tokio::io::{AsyncReadExt, AsyncWriteExt};
+use tokio::net::TcpStream;
+
+fn frame_json() -> Value {
+    serde_json::to_value(fusion_frame()).unwrap()
+}
+
+async fn post(s: &TestServer, path: &str, body: &Value) -> (u16, Value) {
+    let r = reqwest::Client::new().post(s.url(path)).json(body).send().await.unwrap();
+    let status = r.status().as_u16();
+    (status, r.json().await.unwrap_or(Value::Null))
+}
+
+/// Reads until the peer closes; true when it closed (EOF or reset) within `within`.
+async fn closed_within(stream: &mut TcpStream, within: Duration) -> bool {
+    let mut buf = [0u8; 1024];
+    let deadline = Instant::now() + within;
+    loop {
+        let left = deadline.saturating_duration_since(Instant::now());
+        match tokio::time::timeout(left, stream.read(&mut buf)).await {
+            Ok(Ok(0)) | Ok(Err(_)) => return true,
+            Ok(Ok(_)) => continue,
+            Err(_) => return false,
+        }
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn drain_answers_what_was_sent_ends_streams_and_cuts_the_rest_at_the_deadline() {
+    let mut cfg = config();
+    cfg.drain_timeout = Duration::from_millis(1500);
+    cfg.drain_delay = Duration::from_millis(300);
+    let mut s = start(cfg).await;
+    let addr = s.addr;
+    // Half-open connections: headers begun, and a body half sent.
+    let mut half = Vec::new();
+    for i in 0..10 {
+        let mut c = TcpStream::connect(addr).await.unwrap();
+        let msg = if i % 2 == 0 {
+            "POST /v1/poses HTTP/1.1\r\nHost: x\r\n".to_string()
+        } else {
+            "POST /v1/poses HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 1000\r\n\r\n{\"a\":"
+                .to_string()
+        };
+        c.write_all(msg.as_bytes()).await.unwrap();
+        half.push(c);
+    }
+    // A running NDJSON stream: one frame sent, the body left open.
+    let (tx, rx) = futures::channel::mpsc::unbounded::<Result<Vec<u8>, std::io::Error>>();
+    let mut line = serde_json::to_vec(&frame_json()).unwrap();
+    line.push(b'\n');
+    tx.unbounded_send(Ok(line)).unwrap();
+    let stream_url = s.url("/v1/poses:batch");
+    let stream = tokio::spawn(async move {
+        let r = reqwest::Client::new()
+            .post(stream_url)
+            .header("content-type", "application/x-ndjson")
+            .body(reqwest::Body::wrap_stream(rx))
+            .send()
+            .await
+            .unwrap();
+        r.text().await.unwrap()
+    });
+    // A request fully sent, held in the queue while the workers are paused.
+    let pause = s.predictor.runtime().pause();
+    let (url, body) = (s.url("/v1/poses"), frame_json());
+    let in_flight = tokio::spawn(async move { reqwest::Client::new().post(url).json(&body).send().await.unwrap() });
+    tokio::time::sleep(Duration::from_millis(200)).await;
+
+    let t0 = Instant::now();
+    s.signal_shutdown();
+    tokio::time::sleep(Duration::from_millis(50)).await;
+    // Readiness is 503 while the listener still answers (the drain delay).
+    let r = reqwest::Client::new().get(s.url("/readyz")).send().await.unwrap();
+    assert_eq!(r.status(), 503);
+    let grpc = posefuse::server::health::check(addr, Duration::from_secs(2)).await.unwrap();
+    assert_eq!(grpc, tonic_health::pb::health_check_response::ServingStatus::NotServing);
+    drop(pause);
+    // The request that was fully sent is answered.
+    let r = in_flight.await.unwrap();
+    assert_eq!(r.status(), 200);
+    // The stream was told to end: its frame answered, then an `unavailable` item.
+    let text = tokio::time::timeout(Duration::from_secs(5), stream).await.unwrap().unwrap();
+    let items: Vec<Value> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    assert!(items.iter().any(|i| i["response"].is_object()), "{text}");
+    assert_eq!(items.last().unwrap()["error"]["code"], "unavailable", "{text}");
+    // The half-open connections do not hold the process past the drain deadline.
+    let task = s.task.take().unwrap();
+    tokio::time::timeout(Duration::from_secs(5), task).await.expect("drain deadline not kept").unwrap().unwrap();
+    assert!(t0.elapsed() < Duration::from_millis(300 + 1500 + 1000), "{:?}", t0.elapsed());
+    drop(tx);
+    drop(half);
+}
+
+fn hygiene_config() -> posefuse::server::ServerConfig {
+    let mut cfg = config();
+    cfg.conn.idle_timeout = Duration::from_millis(400);
+    cfg.conn.header_read_timeout = Duration::from_millis(400);
+    cfg.conn.body_read_timeout = Duration::from_millis(400);
+    cfg
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn idle_slow_header_and_slow_body_connections_are_closed() {
+    let s = start(hygiene_config()).await;
+    // Says nothing.
+    let mut idle = TcpStream::connect(s.addr).await.unwrap();
+    // Starts headers and stops.
+    let mut slow_head = TcpStream::connect(s.addr).await.unwrap();
+    slow_head.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n").await.unwrap();
+    // Sends headers, then a body that stalls.
+    let mut slow_body = TcpStream::connect(s.addr).await.unwrap();
+    slow_body
+        .write_all(
+            b"POST /v1/poses HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: 100\r\n\r\n{",
+        )
+        .await
+        .unwrap();
+    for (name, c) in [("idle", &mut idle), ("slow header", &mut slow_head), ("slow body", &mut slow_body)] {
+        assert!(closed_within(c, Duration::from_secs(3)).await, "{name} connection still open");
+    }
+    // A keep-alive client that keeps talking is not cut.
+    let c = reqwest::Client::new();
+    for _ in 0..4 {
+        assert_eq!(c.get(s.url("/healthz")).send().await.unwrap().status(), 200);
+        tokio::time::sleep(Duration::from_millis(150)).await;
+    }
+    s.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn at_the_connection_cap_the_idlest_goes_and_busy_ones_are_kept() {
+    let mut cfg = hygiene_config();
+    cfg.conn.idle_timeout = Duration::from_secs(30);
+    cfg.conn.max_connections = 4;
+    let s = start(cfg).await;
+    // Fill the cap with idle connections: a new client still gets served (an idle one is evicted).
+    let mut idle = Vec::new();
+    for _ in 0..4 {
+        idle.push(TcpStream::connect(s.addr).await.unwrap());
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    for _ in 0..3 {
+        let r = reqwest::Client::new().get(s.url("/healthz")).send().await.unwrap();
+        assert_eq!(r.status(), 200);
+    }
+    let mut evicted = 0;
+    for c in &mut idle {
+        if closed_within(c, Duration::from_millis(200)).await {
+            evicted += 1;
+        }
+    }
+    assert!(evicted >= 1, "no idle connection was evicted");
+    drop(idle);
+    tokio::time::sleep(Duration::from_millis(100)).await;
+    // Fill the cap with connections that keep talking (never idle): a new one is closed at once.
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let mut talkers = Vec::new();
+    for _ in 0..4 {
+        let mut c = TcpStream::connect(s.addr).await.unwrap();
+        let stop = stop.clone();
+        talkers.push(tokio::spawn(async move {
+            let _ = c.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n").await;
+            while !stop.load(Ordering::SeqCst) {
+                if c.write_all(b"X-A: b\r\n").await.is_err() {
+                    break;
+                }
+                tokio::time::sleep(Duration::from_millis(20)).await;
+            }
+        }));
+    }
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    let t = Instant::now();
+    let mut extra = TcpStream::connect(s.addr).await.unwrap();
+    assert!(closed_within(&mut extra, Duration::from_millis(500)).await, "over the cap and not closed");
+    assert!(t.elapsed() < Duration::from_millis(500));
+    stop.store(true, Ordering::SeqCst);
+    for t in talkers {
+        let _ = t.await;
+    }
+    s.shutdown().await.unwrap();
+}
+
+fn copy_bundle(version: &str) -> tempfile::TempDir {
+    let d = tempfile::tempdir().unwrap();
+    for e in std::fs::read_dir(model_dir()).unwrap() {
+        let p = e.unwrap().path();
+        std::fs::copy(&p, d.path().join(p.file_name().unwrap())).unwrap();
+    }
+    let p = d.path().join("manifest.json");
+    let mut m: Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
+    m["version"] = json!(version);
+    std::fs::write(p, serde_json::to_string_pretty(&m).unwrap()).unwrap();
+    d
+}
+
+fn version_of(v: &Value) -> String {
+    v["model"]["version"].as_str().unwrap_or("").to_string()
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn reload_under_load_fails_no_request_and_a_broken_bundle_leaves_the_old_one() {
+    let s = Arc::new(start(config()).await);
+    let original = reqwest::get(s.url("/v1/models")).await.unwrap().json::<Value>().await.unwrap();
+    let original = original["version"].as_str().unwrap().to_string();
+    let next = copy_bundle("reloaded-1");
+    // Steady load: 3 clients, one frame after another, until told to stop.
+    let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
+    let (ok, failed) = (Arc::new(AtomicUsize::new(0)), Arc::new(AtomicUsize::new(0)));
+    let versions = Arc::new(std::sync::Mutex::new(std::collections::BTreeSet::new()));
+    let mut clients = Vec::new();
+    for _ in 0..3 {
+        let (s, stop, ok, failed, versions) = (s.clone(), stop.clone(), ok.clone(), failed.clone(), versions.clone());
+        clients.push(tokio::spawn(async move {
+            let body = frame_json();
+            while !stop.load(Ordering::SeqCst) {
+                let (status, v) = post(&s, "/v1/poses", &body).await;
+                if status == 200 {
+                    ok.fetch_add(1, Ordering::SeqCst);
+                    versions.lock().unwrap().insert(version_of(&v));
+                } else {
+                    failed.fetch_add(1, Ordering::SeqCst);
+                }
+            }
+        }));
+    }
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let (status, r) = post(&s, "/v1/models:reload", &json!({"model_dir": next.path()})).await;
+    assert_eq!(status, 200, "{r}");
+    assert_eq!(
+        (r["model"]["version"].as_str(), r["previous"]["version"].as_str()),
+        (Some("reloaded-1"), Some(original.as_str()))
+    );
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    // A broken bundle: the reason comes back, the serving one stays.
+    let broken = copy_bundle("broken");
+    std::fs::write(broken.path().join("point_lidar.onnx"), b"not onnx").unwrap();
+    let (status, r) = post(&s, "/v1/models:reload", &json!({"model_dir": broken.path()})).await;
+    assert_eq!(status, 422, "{r}");
+    assert_eq!(r["error"]["field"], "model_dir");
+    assert!(r["error"]["message"].as_str().unwrap().contains("point_lidar"), "{r}");
+    // Reload of the serving directory (an empty body).
+    let r = reqwest::Client::new().post(s.url("/v1/models:reload")).send().await.unwrap();
+    assert_eq!(r.status(), 200);
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    stop.store(true, Ordering::SeqCst);
+    for c in clients {
+        c.await.unwrap();
+    }
+    assert_eq!(failed.load(Ordering::SeqCst), 0, "requests failed during the reload");
+    assert!(ok.load(Ordering::SeqCst) > 10);
+    let versions = versions.lock().unwrap().clone();
+    assert!(versions.contains(&original) && versions.contains("reloaded-1"), "{versions:?}");
+    let models = reqwest::get(s.url("/v1/models")).await.unwrap().json::<Value>().await.unwrap();
+    assert_eq!(models["version"], "reloaded-1");
+    let (status, v) = post(&s, "/v1/poses", &frame_json()).await;
+    assert_eq!((status, version_of(&v).as_str()), (200, "reloaded-1"));
+    Arc::into_inner(s).unwrap().shutdown().await.unwrap();
+}
+
+/// A `posefuse serve` process on a free loopback port (its CPU time is its own, unlike an
+/// in-process server's, which shares the test process with the other tests).
+struct ServeProcess {
+    child: std::process::Child,
+    addr: String,
+}
+
+impl ServeProcess {
+    fn start(env: &[(&str, String)]) -> ServeProcess {
+        let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+        let addr = format!("127.0.0.1:{port}");
+        let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_posefuse"));
+        cmd.args(["serve", "--addr", &addr, "--model-dir"]).arg(model_dir());
+        cmd.env(
+            "ORT_DYLIB_PATH",
+            std::env::var("ORT_DYLIB_PATH").unwrap_or_else(|_| ".ort/lib/libonnxruntime.so".into()),
+        );
+        cmd.current_dir(env!("CARGO_MANIFEST_DIR")).stderr(std::process::Stdio::null());
+        for (k, v) in env {
+            cmd.env(k, v);
+        }
+        let child = cmd.spawn().unwrap();
+        let p = ServeProcess { child, addr };
+        let t = Instant::now();
+        while !p.ready() {
+            assert!(t.elapsed() < Duration::from_secs(60), "not ready");
+            std::thread::sleep(Duration::from_millis(50));
+        }
+        p
+    }
+
+    fn ready(&self) -> bool {
+        std::net::TcpStream::connect(&self.addr).ok().is_some_and(|mut c| {
+            use std::io::{Read, Write};
+            let _ = c.set_read_timeout(Some(Duration::from_secs(2)));
+            let _ = c.write_all(b"GET /readyz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n");
+            let mut s = String::new();
+            let _ = c.read_to_string(&mut s);
+            s.starts_with("HTTP/1.1 200")
+        })
+    }
+
+    /// CPU seconds the process has used.
+    fn cpu_seconds(&self) -> f64 {
+        let stat = std::fs::read_to_string(format!("/proc/{}/stat", self.child.id())).unwrap();
+        let fields: Vec<&str> = stat.rsplit_once(')').unwrap().1.split_whitespace().collect();
+        let ticks: f64 = fields[11].parse::<f64>().unwrap() + fields[12].parse::<f64>().unwrap();
+        ticks / unsafe { libc::sysconf(libc::_SC_CLK_TCK) } as f64
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("http://{}{path}", self.addr)
+    }
+}
+
+impl Drop for ServeProcess {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// A frame whose pre-processing is long: many persons, each scanning many points.
+fn heavy_frame(persons: usize, points: usize) -> Frame {
+    let b = person_box(8.0, 0.5);
+    let mut pts = points_in(&b, 300);
+    pts.extend((0..points).map(|i| [30.0 + (i % 1000) as f32 * 0.01, 5.0 + (i / 1000) as f32 * 0.01, 0.5]));
+    Frame {
+        frame_id: Some("heavy".into()),
+        image: Some(image_b64(&[box_2d(&b)])),
+        calibration: calibration(),
+        points: Points::encode(&pts),
+        persons: (0..persons).map(|i| Person { id: format!("p{i}"), ..person("p", b, true) }).collect(),
+        mode: RequestedMode::Auto,
+    }
+}
+
+/// The server's CPU seconds in the second after a request ends (with 150 ms for the step in hand).
+async fn cpu_after(s: &ServeProcess, body: &Value, hang_up_after: Option<Duration>) -> (Option<u16>, f64) {
+    let req = reqwest::Client::new().post(s.url("/v1/poses")).json(body);
+    let status = match hang_up_after {
+        None => Some(req.send().await.unwrap().status().as_u16()),
+        Some(d) => {
+            let _ = tokio::time::timeout(d, req.send()).await;
+            None
+        }
+    };
+    tokio::time::sleep(Duration::from_millis(150)).await;
+    let c0 = s.cpu_seconds();
+    tokio::time::sleep(Duration::from_millis(1000)).await;
+    (status, s.cpu_seconds() - c0)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn no_cpu_work_after_a_504_or_a_hang_up() {
+    let body = serde_json::to_value(heavy_frame(256, 200_000)).unwrap();
+    // How long the frame takes, and its CPU, when someone waits for it.
+    let s = ServeProcess::start(&[]);
+    let (t, c0) = (Instant::now(), s.cpu_seconds());
+    let (status, _) = post_to(&s.url("/v1/poses"), &body).await;
+    let (full, full_cpu) = (t.elapsed(), s.cpu_seconds() - c0);
+    assert_eq!(status, 200);
+    drop(s);
+    assert!(full_cpu > 0.5, "the frame is too light to show anything: {full_cpu:.2} CPU-s");
+
+    let cut = full / 10;
+    let s = ServeProcess::start(&[("POSEFUSE_REQUEST_TIMEOUT_MS", cut.as_millis().to_string())]);
+    let (status, cpu) = cpu_after(&s, &body, None).await;
+    assert_eq!(status, Some(504));
+    assert!(cpu < 0.1, "{cpu:.3} CPU-s spent after the 504 (the frame takes {full_cpu:.2} CPU-s)");
+    drop(s);
+    let s = ServeProcess::start(&[]);
+    let (_, cpu) = cpu_after(&s, &body, Some(cut)).await;
+    assert!(cpu < 0.1, "{cpu:.3} CPU-s spent after the client hung up (the frame takes {full_cpu:.2} CPU-s)");
+}
+
+async fn post_to(url: &str, body: &Value) -> (u16, Value) {
+    let r = reqwest::Client::new().post(url).json(body).send().await.unwrap();
+    let status = r.status().as_u16();
+    (status, r.json().await.unwrap_or(Value::Null))
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_image_whose_header_disagrees_is_refused_before_decoding() {
+    let s = start(config()).await;
+    // 13000x13000 declared by the image, 640x480 by the calibration: refused from the header.
+    let mut big = Vec::new();
+    image::DynamicImage::new_luma8(13_000, 13_000)
+        .write_to(&mut std::io::Cursor::new(&mut big), image::ImageFormat::Png)
+        .unwrap();
+    let mut v = frame_json();
+    v["image"] = json!(base64_encode(&big));
+    let t = Instant::now();
+    let (status, r) = post(&s, "/v1/poses", &v).await;
+    assert_eq!(status, 422, "{r}");
+    assert_eq!(r["error"]["field"], "image");
+    assert!(r["error"]["message"].as_str().unwrap().contains("not decoded"), "{r}");
+    assert!(t.elapsed() < Duration::from_secs(2));
+    // A declared size over the pixel limit.
+    let mut v = frame_json();
+    v["calibration"]["width"] = json!(20_000);
+    v["calibration"]["height"] = json!(20_000);
+    let (status, r) = post(&s, "/v1/poses", &v).await;
+    assert_eq!((status, r["error"]["field"].as_str()), (422, Some("calibration.width/height")), "{r}");
+    s.shutdown().await.unwrap();
+}
+
+fn base64_encode(b: &[u8]) -> String {
+    use base64::Engine;
+    base64::engine::general_purpose::STANDARD.encode(b)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn metrics_show_admission_and_in_flight_gauges() {
+    let s = start(config()).await;
+    let (status, _) = post(&s, "/v1/poses", &frame_json()).await;
+    assert_eq!(status, 200);
+    let text = reqwest::get(s.url("/metrics")).await.unwrap().text().await.unwrap();
+    for g in [
+        "posefuse_requests_in_flight",
+        "posefuse_preprocess_in_flight",
+        "posefuse_admission_waiting",
+        "posefuse_queue_depth",
+        "posefuse_connections_open",
+    ] {
+        assert!(text.contains(g), "{g} missing from /metrics");
+    }
+    s.shutdown().await.unwrap();
+}
+
+/// The `posefuse serve` process: SIGHUP reloads (the process stays), SIGTERM drains and exits 0
+/// within the drain deadline although a client holds a half-sent request.
+#[test]
+fn the_serve_process_reloads_on_sighup_and_exits_0_on_sigterm() {
+    let port = {
+        let l = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        l.local_addr().unwrap().port()
+    };
+    let addr = format!("127.0.0.1:{port}");
+    let log = tempfile::NamedTempFile::new().unwrap();
+    let mut child = std::process::Command::new(env!("CARGO_BIN_EXE_posefuse"))
+        .args(["serve", "--addr", &addr, "--model-dir"])
+        .arg(model_dir())
+        .env("ORT_DYLIB_PATH", std::env::var("ORT_DYLIB_PATH").unwrap_or_else(|_| ".ort/lib/libonnxruntime.so".into()))
+        .env("POSEFUSE_DRAIN_TIMEOUT", "2")
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .stderr(log.reopen().unwrap())
+        .spawn()
+        .unwrap();
+    let pid = child.id() as i32;
+    let ready = || {
+        std::net::TcpStream::connect(&addr).ok().is_some_and(|mut c| {
+            use std::io::{Read, Write};
+            let _ = c.set_read_timeout(Some(Duration::from_secs(2)));
+            let _ = c.write_all(b"GET /readyz HTTP/1.1\r\nHost: x\r\nConnection: close\r\n\r\n");
+            let mut s = String::new();
+            let _ = c.read_to_string(&mut s);
+            s.starts_with("HTTP/1.1 200")
+        })
+    };
+    let t = Instant::now();
+    while !ready() {
+        assert!(t.elapsed() < Duration::from_secs(60), "not ready");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    // SIGHUP: reload, not exit.
+    unsafe { libc::kill(pid, libc::SIGHUP) };
+    let t = Instant::now();
+    let logged = |what: &str| std::fs::read_to_string(log.path()).unwrap_or_default().contains(what);
+    while !logged("reloaded") {
+        assert!(child.try_wait().unwrap().is_none(), "SIGHUP killed the process");
+        assert!(t.elapsed() < Duration::from_secs(60), "no reload logged");
+        std::thread::sleep(Duration::from_millis(50));
+    }
+    assert!(ready());
+    // A half-sent request, then SIGTERM: exit 0 within the drain deadline, the cut logged.
+    let mut half = std::net::TcpStream::connect(&addr).unwrap();
+    std::io::Write::write_all(&mut half, b"POST /v1/poses HTTP/1.1\r\nHost: x\r\nContent-Length: 50\r\n\r\n{").unwrap();
+    std::thread::sleep(Duration::from_millis(100));
+    let t = Instant::now();
+    unsafe { libc::kill(pid, libc::SIGTERM) };
+    let status = loop {
+        if let Some(s) = child.try_wait().unwrap() {
+            break s;
+        }
+        if t.elapsed() > Duration::from_secs(10) {
+            let _ = child.kill();
+            panic!("still running 10 s after SIGTERM");
+        }
+        std::thread::sleep(Duration::from_millis(20));
+    };
+    assert_eq!(status.code(), Some(0));
+    assert!(t.elapsed() < Duration::from_secs(4), "{:?}", t.elapsed());
+    assert!(logged("drain deadline passed"), "{}", std::fs::read_to_string(log.path()).unwrap());
+    drop(half);
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn per_frame_limits_on_persons_and_points_are_flags() {
+    let mut cfg = config();
+    cfg.frame_limits = posefuse::service::limits::FrameLimits { max_persons: 2, max_points: 400 };
+    let s = start(cfg).await;
+    // three_mode_frame: 3 persons, 553 points.
+    let mut frame = three_mode_frame();
+    let (status, r) = post(&s, "/v1/poses", &serde_json::to_value(&frame).unwrap()).await;
+    assert_eq!((status, r["error"]["field"].as_str()), (422, Some("persons")), "{r}");
+    frame.persons.truncate(2);
+    let (status, r) = post(&s, "/v1/poses", &serde_json::to_value(&frame).unwrap()).await;
+    assert_eq!((status, r["error"]["field"].as_str()), (422, Some("points")), "{r}");
+    let (status, r) = post(&s, "/v1/poses", &frame_json()).await;
+    assert_eq!(status, 200, "{r}");
+    s.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn large_bodies_are_parsed_off_the_async_threads() {
+    let s = start(config()).await;
+    // 4 bodies of ~24 MB of flat points at once (refused for the point count after parsing).
+    let mut v = frame_json();
+    v["points"] = json!("POINTS");
+    let text = serde_json::to_string(&v).unwrap();
+    let numbers = format!("[{}0.25]", "0.25,".repeat(4_800_000));
+    let body = text.replace("\"POINTS\"", &numbers);
+    let mut posts = Vec::new();
+    for _ in 0..4 {
+        let (url, body) = (s.url("/v1/poses"), body.clone());
+        posts.push(tokio::spawn(async move {
+            let r = reqwest::Client::new().post(url).header("content-type", "application/json").body(body).send().await;
+            r.map(|r| r.status().as_u16()).unwrap_or(0)
+        }));
+    }
+    // Health checks keep answering while they are read and parsed.
+    let c = reqwest::Client::new();
+    let mut worst = Duration::ZERO;
+    while posts.iter().any(|p| !p.is_finished()) {
+        let t = Instant::now();
+        assert_eq!(c.get(s.url("/healthz")).send().await.unwrap().status(), 200);
+        worst = worst.max(t.elapsed());
+        tokio::time::sleep(Duration::from_millis(20)).await;
+    }
+    for p in posts {
+        assert_eq!(p.await.unwrap(), 422);
+    }
+    assert!(worst < Duration::from_millis(500), "/healthz took {worst:?} while bodies were parsed");
+    s.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn many_of_the_largest_boxes_are_refused_before_cropping() {
+    let s = start(config()).await;
+    let b = person_box(8.0, 0.5);
+    let mut frame = fusion_frame();
+    frame.persons = (0..256)
+        .map(|i| {
+            let mut p = person(&format!("p{i}"), b, true);
+            // The largest box allowed: twice the image on each side.
+            p.box_2d = Some(posefuse::frame::Box2d {
+                center_x: WIDTH as f64 / 2.0,
+                center_y: HEIGHT as f64 / 2.0,
+                width: 2.0 * WIDTH as f64,
+                height: 2.0 * HEIGHT as f64,
+            });
+            p
+        })
+        .collect();
+    let t = Instant::now();
+    let (status, r) = post(&s, "/v1/poses", &serde_json::to_value(&frame).unwrap()).await;
+    assert_eq!(status, 422, "{r}");
+    assert!(r["error"]["field"].as_str().unwrap().starts_with("persons["), "{r}");
+    assert!(r["error"]["message"].as_str().unwrap().contains("times the image"), "{r}");
+    assert!(t.elapsed() < Duration::from_secs(3), "{:?}", t.elapsed());
+    s.shutdown().await.unwrap();
+}
