@@ -141,6 +141,7 @@ fn main() {
             })
             .collect(),
         mode: proto::Mode::Auto as i32,
+        ..Default::default()
     };
     let mut grpc = rt.block_on(PosefuseClient::connect(server.url(""))).unwrap();
 

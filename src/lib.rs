@@ -5,6 +5,7 @@
 pub mod error;
 pub mod frame;
 pub mod geometry;
+pub mod image_decode;
 pub mod keypoints;
 pub mod metrics;
 pub mod pipeline;

@@ -45,6 +45,7 @@ fn to_proto(f: &Frame, image: Option<Vec<u8>>) -> proto::PredictRequest {
             })
             .collect(),
         mode: proto::Mode::Auto as i32,
+        ..Default::default()
     }
 }
 

@@ -3,6 +3,7 @@
 
 mod config;
 mod crop;
+mod decode_plan;
 mod fusion;
 mod lift;
 mod points;
@@ -10,6 +11,7 @@ mod prepare;
 
 pub use config::PipelineConfig;
 pub use crop::{crop_rgb, normalize, CropTransform};
+pub use decode_plan::{plan_decode, scaled, DecodePlan, PixelRect, DCT_DENOMINATORS};
 pub use fusion::{
     cell_index, fused_points, gaussian_kernel, lidar_points, sample_features, smooth_heatmaps, smoothed_features,
 };

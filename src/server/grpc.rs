@@ -12,7 +12,7 @@ use super::api::{Mode, PoseResponse};
 use super::errors::grpc_status;
 use super::AppState;
 use crate::error::{Error, Result};
-use crate::frame::{Box2d, Box3d, CameraCalibration, Frame, Person, Points, RequestedMode};
+use crate::frame::{Box2d, Box3d, CameraCalibration, Frame, Person, Points, RequestedMode, RgbPixels};
 
 /// Generated messages, server and client of `proto/posefuse.proto`.
 #[allow(clippy::all, missing_docs)]
@@ -105,9 +105,13 @@ pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<Vec<u
             ground_truth: None,
         });
     }
+    let rgb_given = !r.image_rgb.is_empty() || r.image_rgb_width != 0 || r.image_rgb_height != 0;
+    let image_rgb =
+        rgb_given.then(|| RgbPixels { width: r.image_rgb_width, height: r.image_rgb_height, pixels: r.image_rgb });
     let frame = Frame {
         frame_id: (!r.frame_id.is_empty()).then_some(r.frame_id),
         image: None,
+        image_rgb,
         calibration: CameraCalibration {
             intrinsic: c.intrinsic,
             extrinsic: c.extrinsic,

@@ -6,17 +6,15 @@
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use base64::Engine;
-use image::RgbImage;
-
 use super::api::{KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, SkippedPerson, Timings};
 use crate::error::{Error, Result};
-use crate::frame::{Box2d, Box3d, Frame, RequestedMode};
+use crate::frame::{Box2d, Box3d, Frame, RequestedMode, RgbPixels};
 use crate::geometry::{box2d_from_points, BoxFrame, Camera};
+use crate::image_decode::{self, CameraImage};
 use crate::keypoints::{K, NAMES, WAYMO_TYPES};
 use crate::pipeline::{
-    crop_rgb, decode_heatmaps, fused_points, keypoints_to_pixels, keypoints_to_vehicle, lidar_points, lift, normalize,
-    prepare_person, smoothed_features, PipelineConfig, PointInput,
+    decode_heatmaps, fused_points, keypoints_to_pixels, keypoints_to_vehicle, lidar_points, lift, normalize,
+    plan_decode, prepare_person, smoothed_features, CropTransform, PipelineConfig, PointInput,
 };
 use crate::runtime::{Bundle, ChainStep, JobOutput, ModelKind, Runtime};
 
@@ -24,13 +22,6 @@ use crate::runtime::{Bundle, ChainStep, JobOutput, ModelKind, Runtime};
 #[derive(Clone)]
 pub struct Predictor {
     runtime: Arc<Runtime>,
-}
-
-/// The camera image of a frame after decoding.
-enum ImageState {
-    Absent,
-    Undecodable(String),
-    Decoded(RgbImage),
 }
 
 /// Everything decided before inference for one person.
@@ -101,7 +92,9 @@ impl Predictor {
         // Decoding and cropping are CPU work; keep them off the async executor.
         let plan = tokio::task::spawn_blocking(move || {
             let cfg = bundle.config();
-            plan_frame(&frame, raw_image, cfg).map(|p| (p, frame.frame_id))
+            let mut frame = frame;
+            let pixels = frame.image_rgb.take();
+            plan_frame(&frame, raw_image, pixels, cfg).map(|p| (p, frame.frame_id))
         })
         .await
         .map_err(|e| Error::Runtime(format!("pre-processing task failed: {e}")))?;
@@ -234,38 +227,6 @@ pub fn projected_box(camera: &Camera, b: &Box3d) -> Option<Box2d> {
         .filter(|bb| bb.width > 0.0 && bb.height > 0.0 && overlaps_image(bb, camera.width, camera.height))
 }
 
-fn decode_image(frame: &Frame, raw_image: Option<Vec<u8>>) -> Result<ImageState> {
-    let bytes = match raw_image {
-        Some(b) if b.is_empty() => return Ok(ImageState::Absent),
-        Some(b) => b,
-        None => match &frame.image {
-            None => return Ok(ImageState::Absent),
-            Some(text) => match base64::engine::general_purpose::STANDARD.decode(text.as_bytes()) {
-                Ok(b) => b,
-                Err(e) => return Ok(ImageState::Undecodable(format!("image is not valid base64: {e}"))),
-            },
-        },
-    };
-    let img = match image::load_from_memory(&bytes) {
-        Ok(img) => img.into_rgb8(),
-        Err(e) => return Ok(ImageState::Undecodable(format!("image is not a decodable JPEG or PNG: {e}"))),
-    };
-    let c = &frame.calibration;
-    if img.width() != c.width || img.height() != c.height {
-        return Err(Error::field(
-            "image",
-            format!(
-                "decoded image is {}x{} but calibration.width/height say {}x{}",
-                img.width(),
-                img.height(),
-                c.width,
-                c.height
-            ),
-        ));
-    }
-    Ok(ImageState::Decoded(img))
-}
-
 /// Persons per frame: each one scans every point of the frame, so the work is bounded here.
 pub const MAX_PERSONS: usize = 256;
 
@@ -292,7 +253,12 @@ fn clip_to_image(b: Box2d, width: u32, height: u32) -> Box2d {
     Box2d { center_x: (x0 + x1) / 2.0, center_y: (y0 + y1) / 2.0, width: x1 - x0, height: y1 - y0 }
 }
 
-fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -> Result<FramePlan> {
+fn plan_frame(
+    frame: &Frame,
+    raw_image: Option<Vec<u8>>,
+    pixels: Option<RgbPixels>,
+    cfg: &PipelineConfig,
+) -> Result<FramePlan> {
     frame.validate()?;
     if frame.persons.len() > MAX_PERSONS {
         return Err(Error::field(
@@ -306,10 +272,15 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
     if points.is_empty() {
         return Err(Error::field("points", "no LiDAR points: every mode needs the points of the persons' boxes"));
     }
-    let image = decode_image(frame, raw_image)?;
-    let decode = t0.elapsed();
+    // the header only: the pixels are decoded once the crops are known
+    let image = image_decode::open(frame, raw_image, pixels)?;
+    let mut decode = t0.elapsed();
     let t1 = Instant::now();
     let mut persons = Vec::with_capacity(frame.persons.len());
+    let mut crops: Vec<Option<CropTransform>> = Vec::with_capacity(frame.persons.len());
+    // every person's window, whatever its mode: the simulator plans its fixtures' decodes from
+    // all of them, so a crop is cut from the same decode in training and in serving
+    let mut windows = Vec::with_capacity(frame.persons.len());
     let mut skipped = Vec::new();
     let mut skip = |index: usize, id: &str, e: Error| {
         metrics::counter!("posefuse_persons_skipped_total").increment(1);
@@ -338,6 +309,7 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
             }),
         };
         let prepared = prepare_person(None, Some(&camera), &points, &person.box_3d, box_2d.as_ref(), cfg);
+        windows.extend(prepared.crop);
         let num_points = prepared.points.len();
         let Some(input) = prepared.input else {
             let why = format!("no LiDAR point lies inside the box (grown by {} m on every side)", cfg.box_margin);
@@ -345,13 +317,13 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
             continue;
         };
         let camera_problem: Option<(String, String)> = match (&image, box_2d) {
-            (ImageState::Absent, _) => Some(("image".into(), "no image in the request".into())),
-            (ImageState::Undecodable(m), _) => Some(("image".into(), m.clone())),
-            (ImageState::Decoded(_), None) => Some((
+            (CameraImage::Absent, _) => Some(("image".into(), "no image in the request".into())),
+            (CameraImage::Undecodable(m), _) => Some(("image".into(), m.clone())),
+            (_, None) => Some((
                 format!("{field}.box_2d"),
                 "no 2D box given and the projected 3D box is outside the camera view".into(),
             )),
-            (ImageState::Decoded(_), Some(_)) => None,
+            (_, Some(_)) => None,
         };
         let min = cfg.min_points as usize;
         let (mode, reason) = match (frame.mode, &camera_problem) {
@@ -375,13 +347,14 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
             skip(i, &person.id, Error::InsufficientData { field: format!("{field}.box_3d"), message: why.into() });
             continue;
         }
-        let image_input = match (mode, &image, prepared.crop.as_ref()) {
-            (Mode::Fusion | Mode::Camera, ImageState::Decoded(img), Some(t)) => Some(normalize(&crop_rgb(img, t), cfg)),
+        let crop = match (mode, image.usable(), prepared.crop) {
+            (Mode::Fusion | Mode::Camera, true, Some(t)) => Some(t),
             (Mode::Fusion | Mode::Camera, _, _) => {
                 return Err(Error::Runtime(format!("{field}: camera mode chosen without a crop")));
             }
             (Mode::Lidar, _, _) => None,
         };
+        crops.push(crop);
         persons.push(PersonPlan {
             id: person.id.clone(),
             mode,
@@ -390,10 +363,36 @@ fn plan_frame(frame: &Frame, raw_image: Option<Vec<u8>>, cfg: &PipelineConfig) -
             box_2d,
             num_points,
             input,
-            image_input,
+            image_input: None,
         });
     }
-    Ok(FramePlan { camera, persons, skipped, decode, preprocess: t1.elapsed() })
+    // Decode only what the crops need (`pipeline::plan_decode`), then cut them.
+    let mut decode_pixels = Duration::ZERO;
+    if crops.iter().any(Option::is_some) {
+        let t2 = Instant::now();
+        let decoded = image_decode::decode(image, &plan_decode(&windows, camera.width, camera.height));
+        decode_pixels = t2.elapsed();
+        match decoded {
+            Ok(img) => {
+                for (p, t) in persons.iter_mut().zip(&crops) {
+                    p.image_input = t.map(|t| normalize(&img.crop(&t), cfg));
+                }
+            }
+            // the header was sound but the pixels are not
+            Err(why) if frame.mode == RequestedMode::Auto => {
+                for (p, t) in persons.iter_mut().zip(&crops) {
+                    if t.is_some() {
+                        (p.mode, p.reason) = (Mode::Lidar, format!("camera unusable: {why}"));
+                    }
+                }
+            }
+            Err(why) => {
+                return Err(Error::field("image", format!("mode {:?} needs the camera: {why}", frame.mode)));
+            }
+        }
+    }
+    decode += decode_pixels;
+    Ok(FramePlan { camera, persons, skipped, decode, preprocess: t1.elapsed().saturating_sub(decode_pixels) })
 }
 
 #[cfg(test)]
