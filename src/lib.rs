@@ -7,6 +7,7 @@ pub mod frame;
 pub mod geometry;
 pub mod image_decode;
 pub mod keypoints;
+pub mod loadbench;
 pub mod metrics;
 pub mod pipeline;
 pub mod runtime;

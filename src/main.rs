@@ -27,6 +27,8 @@ enum Command {
     Simulate(posefuse::sim::SimulateArgs),
     /// Ask a running server whether it is ready (gRPC health); exit status 0 only when it is.
     Health(posefuse::server::health::HealthArgs),
+    /// Load a server with request fixtures at several concurrencies, beside raw ONNX Runtime.
+    Bench(posefuse::loadbench::BenchArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -37,5 +39,6 @@ fn main() -> anyhow::Result<()> {
         Command::Eval(a) => posefuse::server::eval_command(a),
         Command::Simulate(a) => posefuse::sim::simulate_command(a),
         Command::Health(a) => posefuse::server::health::health_command(a),
+        Command::Bench(a) => posefuse::loadbench::bench_command(a),
     }
 }

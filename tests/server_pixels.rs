@@ -143,3 +143,15 @@ async fn a_jpeg_frame_is_decoded_at_the_planned_scale_and_answers_like_its_pixel
     assert!(worst < 0.05, "keypoints moved {worst} m between the JPEG and its pixels");
     s.shutdown().await.unwrap();
 }
+
+#[test]
+fn the_openapi_document_describes_raw_pixels() {
+    let doc = serde_json::to_value(posefuse::server::http::openapi_doc()).unwrap();
+    let schemas = &doc["components"]["schemas"];
+    assert!(schemas["Frame"]["properties"]["image_rgb"].is_object(), "{}", schemas["Frame"]);
+    let rgb = &schemas["RgbPixels"]["properties"];
+    for key in ["width", "height", "b64"] {
+        assert!(rgb[key].is_object(), "RgbPixels.{key} missing: {rgb}");
+    }
+    assert_eq!(rgb["b64"]["type"], "string");
+}

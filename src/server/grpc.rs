@@ -107,7 +107,7 @@ pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<Vec<u
     }
     let rgb_given = !r.image_rgb.is_empty() || r.image_rgb_width != 0 || r.image_rgb_height != 0;
     let image_rgb =
-        rgb_given.then(|| RgbPixels { width: r.image_rgb_width, height: r.image_rgb_height, pixels: r.image_rgb });
+        rgb_given.then_some(RgbPixels { width: r.image_rgb_width, height: r.image_rgb_height, pixels: r.image_rgb });
     let frame = Frame {
         frame_id: (!r.frame_id.is_empty()).then_some(r.frame_id),
         image: None,
