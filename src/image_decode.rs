@@ -2,14 +2,16 @@
 //!
 //! [`open`] reads the header only and refuses an image whose size disagrees with the calibration
 //! before any pixel is decoded. [`decode`] then carries out a [`DecodePlan`]
-//! (`pipeline::plan_decode`): a JPEG at the plan's DCT scale (the `jpeg-decoder` crate's
-//! reduced-size IDCT: ½, ¼ or ⅛ costs a 4×4, 2×2 or 1×1 inverse transform per 8×8 block instead
-//! of the full one, and colour conversion of as many fewer pixels); PNG and raw RGB8 pixels at full
-//! resolution. Crops are cut from the result with [`DecodedImage::crop`], in serving and when the
-//! simulator writes fixtures and training samples alike.
+//! (`pipeline::plan_decode`). Crops are cut from the result with [`DecodedImage::crop`], in
+//! serving and when the simulator writes fixtures and training samples alike.
 //!
-//! `POSEFUSE_DECODE=full` (read once) decodes every JPEG whole, at full resolution, with the
-//! `image` crate (the decoder this module replaced): the reference for accuracy comparisons.
+//! By default a JPEG is decoded whole at full resolution by the `image` crate (zune-jpeg): measured
+//! on the street fixtures (BENCHMARKS.md) it beats the only maintained pure-Rust decoder with DCT
+//! scaling, the `jpeg-decoder` crate, at every scale, because entropy decoding (the same at every
+//! scale) dominates and zune-jpeg's is much faster. `POSEFUSE_DECODE=scaled` (read once) carries
+//! out the plan's DCT scale with `jpeg-decoder`'s reduced-size IDCT instead (½, ¼ or ⅛: a 4×4,
+//! 2×2 or 1×1 inverse transform per 8×8 block), for comparisons and for a faster scaling decoder
+//! later. PNG and raw RGB8 pixels are used at full resolution.
 
 use std::io::Cursor;
 use std::sync::OnceLock;
@@ -55,10 +57,10 @@ impl DecodedImage {
     }
 }
 
-/// Whether `POSEFUSE_DECODE=full` asks for whole, full-resolution JPEG decodes.
-pub fn full_decode_forced() -> bool {
-    static FULL: OnceLock<bool> = OnceLock::new();
-    *FULL.get_or_init(|| std::env::var("POSEFUSE_DECODE").is_ok_and(|v| v.eq_ignore_ascii_case("full")))
+/// Whether `POSEFUSE_DECODE=scaled` asks for JPEG decodes at the plan's DCT scale.
+pub fn scaled_decode_enabled() -> bool {
+    static SCALED: OnceLock<bool> = OnceLock::new();
+    *SCALED.get_or_init(|| std::env::var("POSEFUSE_DECODE").is_ok_and(|v| v.eq_ignore_ascii_case("scaled")))
 }
 
 /// The frame's image, header read and checked: `raw_image` (file bytes, as gRPC sends them)
@@ -131,8 +133,8 @@ fn guard<T>(f: impl FnOnce() -> std::result::Result<T, String>) -> std::result::
 pub fn decode(image: CameraImage, plan: &DecodePlan) -> std::result::Result<DecodedImage, String> {
     match image {
         CameraImage::Pixels(image) => Ok(DecodedImage { image, denominator: 1 }),
-        CameraImage::Jpeg(bytes) if full_decode_forced() => decode_with_image_crate(&bytes, image::ImageFormat::Jpeg),
-        CameraImage::Jpeg(bytes) => decode_jpeg(&bytes, plan.denominator),
+        CameraImage::Jpeg(bytes) if scaled_decode_enabled() => decode_jpeg(&bytes, plan.denominator),
+        CameraImage::Jpeg(bytes) => decode_with_image_crate(&bytes, image::ImageFormat::Jpeg),
         CameraImage::Png(bytes) => decode_with_image_crate(&bytes, image::ImageFormat::Png),
         CameraImage::Absent => Err("no image in the request".into()),
         CameraImage::Undecodable(why) => Err(why),

@@ -126,8 +126,8 @@ async fn raw_pixel_size_errors_name_their_field() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_jpeg_frame_is_decoded_at_the_planned_scale_and_answers_like_its_pixels() {
-    // A JPEG of the fusion frame's pixels: the planned (DCT-scaled) decode and the raw pixels
+async fn a_jpeg_frame_answers_like_its_pixels() {
+    // A JPEG of the fusion frame's pixels: the decoded JPEG and the raw pixels
     // give crops that differ by the codec's loss only, so the keypoints stay close.
     let s = start(config()).await;
     let (w, h, bytes) = pixels_of_fusion_frame();
