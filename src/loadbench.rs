@@ -62,25 +62,25 @@ pub struct BenchArgs {
     #[arg(long, env = "POSEFUSE_BENCH_DATA")]
     pub data: PathBuf,
     /// Concurrent clients, one step each (comma-separated).
-    #[arg(long, value_delimiter = ',', default_value = "1,4,16,64")]
+    #[arg(long, env = "POSEFUSE_BENCH_CONCURRENCY", value_delimiter = ',', default_value = "1,4,16,64")]
     pub concurrency: Vec<usize>,
     /// Seconds of load per step.
-    #[arg(long, default_value_t = 10.0)]
+    #[arg(long, env = "POSEFUSE_BENCH_DURATION", default_value_t = 10.0)]
     pub duration: f64,
     /// Image forms to send, one table block each (comma-separated).
-    #[arg(long, value_enum, value_delimiter = ',', default_value = "as-is")]
+    #[arg(long, env = "POSEFUSE_BENCH_IMAGE", value_enum, value_delimiter = ',', default_value = "as-is")]
     pub image: Vec<ImageForm>,
     /// Transport.
-    #[arg(long, value_enum, default_value = "http")]
+    #[arg(long, env = "POSEFUSE_BENCH_PROTOCOL", value_enum, default_value = "http")]
     pub protocol: Protocol,
     /// Fixtures used (the first N frames, in file-name order).
-    #[arg(long, default_value_t = 40)]
+    #[arg(long, env = "POSEFUSE_BENCH_FRAMES", default_value_t = 40)]
     pub frames: usize,
     /// Seconds after which a request counts as hung (status `timeout`).
-    #[arg(long, default_value_t = 30.0)]
+    #[arg(long, env = "POSEFUSE_BENCH_TIMEOUT", default_value_t = 30.0)]
     pub timeout: f64,
     /// Skip the raw ONNX Runtime ceiling.
-    #[arg(long)]
+    #[arg(long, env = "POSEFUSE_BENCH_NO_RAW")]
     pub no_raw: bool,
     /// The bundle and thread settings: of the server this starts, and of the raw ceiling.
     #[command(flatten)]
@@ -417,7 +417,7 @@ fn raw_ceiling(args: &BenchArgs, frames: &[Frame]) -> anyhow::Result<Raw> {
         bail!("no person of the fixtures has both a crop and LiDAR points");
     }
     let b = rt.max_batch.max(1);
-    let secs = args.duration.clamp(1.0, 10.0);
+    let secs = args.duration.min(10.0);
     let done = Arc::new(AtomicU64::new(0));
     let mut sessions = vec![models];
     for _ in 1..rt.workers.max(1) {
@@ -544,10 +544,14 @@ pub fn bench_command(args: BenchArgs) -> anyhow::Result<()> {
             duration: Duration::from_secs_f64(args.duration),
             timeout: Duration::from_secs_f64(args.timeout),
         };
-        // warm-up, one client for a second
-        rt.block_on(run_step(Load { duration: Duration::from_secs(1), ..load }, &url, None, prepared.clone()))?;
+        // warm-up, one client for a second (at most one step's duration)
+        let warm = Duration::from_secs_f64(args.duration.min(1.0));
+        rt.block_on(run_step(Load { duration: warm, ..load }, &url, None, prepared.clone()))?;
         for &clients in &args.concurrency {
             let s = rt.block_on(run_step(Load { clients: clients.max(1), ..load }, &url, pid, prepared.clone()))?;
+            if s.latencies.is_empty() {
+                bail!("{form:?} at {clients} clients: no request was answered with 200 ({:?})", s.statuses);
+            }
             let secs = s.wall.as_secs_f64();
             let (p50, p99) = (percentile(&s.latencies, 0.5), percentile(&s.latencies, 0.99));
             let statuses: Vec<String> = s.statuses.iter().map(|(k, v)| format!("{k}: {v}")).collect();
