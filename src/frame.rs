@@ -18,6 +18,9 @@ pub struct Frame {
     /// Camera image, base64 of a JPEG or PNG file. Absent: LiDAR-only.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub image: Option<String>,
+    /// Decoded camera pixels instead of an encoded `image` (never both).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub image_rgb: Option<RgbPixels>,
     /// Calibration of the camera that took `image`.
     pub calibration: CameraCalibration,
     /// LiDAR points in the vehicle frame (x forward, y left, z up; metres).
@@ -27,6 +30,60 @@ pub struct Frame {
     /// Requested mode; `auto` picks per person.
     #[serde(default)]
     pub mode: RequestedMode,
+}
+
+/// Decoded RGB8 pixels, row-major without padding: `width·height·3` bytes, base64 in JSON (gRPC
+/// sends the bytes themselves). The size must match the calibration's.
+#[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
+#[serde(deny_unknown_fields)]
+pub struct RgbPixels {
+    /// Width in pixels.
+    pub width: u32,
+    /// Height in pixels.
+    pub height: u32,
+    /// Base64 of the R, G, B bytes of each pixel, row by row from the top-left.
+    #[serde(rename = "b64", with = "base64_bytes")]
+    #[schema(value_type = String, format = Byte)]
+    pub pixels: Vec<u8>,
+}
+
+impl RgbPixels {
+    /// The pixels as an image, checked against their declared size and the calibration's.
+    pub fn into_image(self, calib_width: u32, calib_height: u32) -> Result<image::RgbImage> {
+        let (w, h) = (self.width, self.height);
+        if (w, h) != (calib_width, calib_height) {
+            return Err(Error::field(
+                "image_rgb.width/height",
+                format!("{w}x{h} but calibration.width/height say {calib_width}x{calib_height}"),
+            ));
+        }
+        let expected = w as u64 * h as u64 * 3;
+        if self.pixels.len() as u64 != expected {
+            return Err(Error::field(
+                "image_rgb.b64",
+                format!("{} bytes, but {w}x{h} RGB8 pixels are {expected} bytes", self.pixels.len()),
+            ));
+        }
+        image::RgbImage::from_raw(w, h, self.pixels)
+            .ok_or_else(|| Error::field("image_rgb.b64", "pixel buffer does not fit the size"))
+    }
+}
+
+/// Bytes as base64 text in JSON.
+mod base64_bytes {
+    use base64::Engine;
+    use serde::{Deserialize, Deserializer, Serializer};
+
+    pub fn serialize<S: Serializer>(bytes: &[u8], s: S) -> std::result::Result<S::Ok, S::Error> {
+        s.serialize_str(&base64::engine::general_purpose::STANDARD.encode(bytes))
+    }
+
+    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> std::result::Result<Vec<u8>, D::Error> {
+        let text = String::deserialize(d)?;
+        base64::engine::general_purpose::STANDARD
+            .decode(text.as_bytes())
+            .map_err(|e| serde::de::Error::custom(format!("not valid base64: {e}")))
+    }
 }
 
 /// Waymo-style camera calibration.
@@ -342,6 +399,7 @@ mod tests {
         Frame {
             frame_id: None,
             image: None,
+            image_rgb: None,
             calibration: calib(),
             points: Points::Flat(vec![10.0, 0.0, 1.0]),
             persons: vec![Person {

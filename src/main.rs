@@ -3,7 +3,7 @@
 mod cli;
 
 use clap::{Parser, Subcommand};
-use cli::args::{EvalArgs, HealthArgs, PredictArgs, ServeArgs, SimulateArgs};
+use cli::args::{BenchArgs, EvalArgs, HealthArgs, PredictArgs, ServeArgs, SimulateArgs};
 use cli::commands;
 
 // Requests allocate crops and tensors of a few hundred KB; the system allocator maps and unmaps
@@ -31,6 +31,8 @@ enum Command {
     Simulate(SimulateArgs),
     /// Ask a running server whether it is ready (gRPC health); exit status 0 only when it is.
     Health(HealthArgs),
+    /// Load a server with request fixtures at several concurrencies, beside raw ONNX Runtime.
+    Bench(BenchArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -40,5 +42,6 @@ fn main() -> anyhow::Result<()> {
         Command::Eval(a) => commands::eval(a),
         Command::Simulate(a) => commands::simulate(a),
         Command::Health(a) => commands::health(a),
+        Command::Bench(a) => posefuse::loadbench::run_bench(a.into()),
     }
 }

@@ -341,6 +341,7 @@ fn heavy_frame(persons: usize, points: usize) -> Frame {
     Frame {
         frame_id: Some("heavy".into()),
         image: Some(image_b64(&[box_2d(&b)])),
+        image_rgb: None,
         calibration: calibration(),
         points: Points::encode(&pts),
         persons: (0..persons).map(|i| Person { id: format!("p{i}"), ..person("p", b, true) }).collect(),

@@ -10,7 +10,7 @@ use ndarray::ArrayD;
 use ndarray_npy::NpzReader;
 use posefuse::frame::{Box3d, CameraCalibration, Frame};
 use posefuse::geometry::{BoxFrame, Camera};
-use posefuse::pipeline::{crop_rgb, from_local, prepare_person, CropTransform, PipelineConfig};
+use posefuse::pipeline::{from_local, prepare_person, CropTransform, PipelineConfig};
 use posefuse::sim::street::Profile;
 use posefuse::sim::{simulate, SimulateOptions};
 
@@ -246,9 +246,15 @@ fn fixture_frames_give_the_server_the_same_crops_and_points_as_the_shards() {
     let rows: Vec<usize> = (0..COUNT).filter(|&i| fidx[[i]] == 0).collect();
     let mut with_points = 0;
     assert_eq!(rows.len(), frame.persons.len());
+    // the server's decode: header, then the DCT scale and region all the frame's windows need
+    let windows: Vec<CropTransform> =
+        frame.persons.iter().map(|p| CropTransform::for_box(&p.box_2d.unwrap(), &cfg)).collect();
+    let plan = posefuse::pipeline::plan_decode(&windows, 1920, 1280);
+    let decoded =
+        posefuse::image_decode::decode(posefuse::image_decode::open(&frame, None, None).unwrap(), &plan).unwrap();
     for (row, person) in rows.into_iter().zip(&frame.persons) {
         let b2 = person.box_2d.unwrap();
-        let crop = crop_rgb(&image, &CropTransform::for_box(&b2, &cfg));
+        let crop = decoded.crop(&CropTransform::for_box(&b2, &cfg));
         let shard_crop: Vec<u8> = img.slice(ndarray::s![row, .., .., ..]).iter().copied().collect();
         assert!(crop.as_raw() == &shard_crop, "shard crop of person {} differs from the server's", person.id);
         let prep = prepare_person(Some(&image), Some(&cam), &points, &person.box_3d, Some(&b2), &cfg);

@@ -7,6 +7,7 @@ use std::time::Duration;
 
 use posefuse::eval::HeadingNoise;
 use posefuse::frame::RequestedMode;
+use posefuse::loadbench::{BenchOptions, ImageForm, Protocol};
 use posefuse::runtime::RuntimeConfig;
 use posefuse::server::conn::ConnLimits;
 use posefuse::server::ServerConfig;
@@ -237,6 +238,64 @@ impl From<SimulateArgs> for SimulateOptions {
             points_cap: a.points_cap,
             profile: a.profile,
             jobs: a.jobs,
+        }
+    }
+}
+
+/// Arguments of `posefuse bench`.
+#[derive(Debug, clap::Args)]
+pub struct BenchArgs {
+    /// Server to load (HTTP base URL; gRPC on the same port). Absent: start `posefuse serve` on a
+    /// free local port with the runtime flags below, and measure it.
+    #[arg(long, env = "POSEFUSE_BENCH_URL")]
+    pub url: Option<String>,
+    /// Process id of the server behind --url, for its memory.
+    #[arg(long, env = "POSEFUSE_BENCH_SERVER_PID")]
+    pub server_pid: Option<u32>,
+    /// Simulator output directory: its `requests/*.json` fixtures are sent.
+    #[arg(long, env = "POSEFUSE_BENCH_DATA")]
+    pub data: PathBuf,
+    /// Concurrent clients, one step each (comma-separated).
+    #[arg(long, env = "POSEFUSE_BENCH_CONCURRENCY", value_delimiter = ',', default_value = "1,4,16,64")]
+    pub concurrency: Vec<usize>,
+    /// Seconds of load per step.
+    #[arg(long, env = "POSEFUSE_BENCH_DURATION", default_value_t = 10.0)]
+    pub duration: f64,
+    /// Image forms to send, one table block each (comma-separated).
+    #[arg(long, env = "POSEFUSE_BENCH_IMAGE", value_enum, value_delimiter = ',', default_value = "as-is")]
+    pub image: Vec<ImageForm>,
+    /// Transport.
+    #[arg(long, env = "POSEFUSE_BENCH_PROTOCOL", value_enum, default_value = "http")]
+    pub protocol: Protocol,
+    /// Fixtures used (the first N frames, in file-name order).
+    #[arg(long, env = "POSEFUSE_BENCH_FRAMES", default_value_t = 40)]
+    pub frames: usize,
+    /// Seconds after which a request counts as hung (status `timeout`).
+    #[arg(long, env = "POSEFUSE_BENCH_TIMEOUT", default_value_t = 30.0)]
+    pub timeout: f64,
+    /// Skip the raw ONNX Runtime ceiling.
+    #[arg(long, env = "POSEFUSE_BENCH_NO_RAW")]
+    pub no_raw: bool,
+    /// The bundle and thread settings: of the server this starts, and of the raw ceiling.
+    #[command(flatten)]
+    pub runtime: RuntimeArgs,
+}
+
+impl From<BenchArgs> for BenchOptions {
+    fn from(a: BenchArgs) -> BenchOptions {
+        BenchOptions {
+            runtime: a.runtime.runtime_config(),
+            model_dir: a.runtime.model_dir,
+            url: a.url,
+            server_pid: a.server_pid,
+            data: a.data,
+            concurrency: a.concurrency,
+            duration: a.duration,
+            image: a.image,
+            protocol: a.protocol,
+            frames: a.frames,
+            timeout: a.timeout,
+            no_raw: a.no_raw,
         }
     }
 }

@@ -87,6 +87,7 @@ mod tests {
             .map(|i| Frame {
                 frame_id: None,
                 image: None,
+                image_rgb: None,
                 calibration: CameraCalibration { intrinsic: vec![], extrinsic: vec![], width: 1, height: 1 },
                 points: Points::Flat(vec![]),
                 persons: vec![person(0.1 * i as f64), person(-1.0)],

@@ -3,6 +3,7 @@
 
 mod config;
 mod crop;
+mod decode_plan;
 mod facing;
 mod fusion;
 mod lift;
@@ -11,6 +12,7 @@ mod prepare;
 
 pub use config::PipelineConfig;
 pub use crop::{crop_rgb, normalize, CropTransform};
+pub use decode_plan::{plan_decode, scaled, DecodePlan, PixelRect, DCT_DENOMINATORS};
 pub use facing::{facing, yaw_difference, Facing, FULL_WIDTH_M};
 pub use fusion::{
     cell_index, fused_points, gaussian_kernel, lidar_points, sample_features, smooth_heatmaps, smoothed_features,

@@ -10,7 +10,7 @@ use tonic::{Request, Response, Status};
 use super::errors::grpc_status;
 use super::AppState;
 use crate::error::{Error, Result};
-use crate::frame::{Box2d, Box3d, CameraCalibration, Frame, Person, Points, RequestedMode};
+use crate::frame::{Box2d, Box3d, CameraCalibration, Frame, Person, Points, RequestedMode, RgbPixels};
 use crate::service::admission::Ticket;
 use crate::service::api::{Mode, PoseResponse};
 
@@ -124,9 +124,13 @@ pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<Vec<u
             ground_truth: None,
         });
     }
+    let rgb_given = !r.image_rgb.is_empty() || r.image_rgb_width != 0 || r.image_rgb_height != 0;
+    let image_rgb =
+        rgb_given.then_some(RgbPixels { width: r.image_rgb_width, height: r.image_rgb_height, pixels: r.image_rgb });
     let frame = Frame {
         frame_id: (!r.frame_id.is_empty()).then_some(r.frame_id),
         image: None,
+        image_rgb,
         calibration: CameraCalibration {
             intrinsic: c.intrinsic,
             extrinsic: c.extrinsic,
@@ -176,6 +180,9 @@ pub fn frame_to_proto(f: &Frame, image: Vec<u8>) -> Result<proto::PredictRequest
             })
             .collect(),
         mode: mode_request_to_proto(f.mode) as i32,
+        image_rgb: f.image_rgb.as_ref().map(|p| p.pixels.clone()).unwrap_or_default(),
+        image_rgb_width: f.image_rgb.as_ref().map_or(0, |p| p.width),
+        image_rgb_height: f.image_rgb.as_ref().map_or(0, |p| p.height),
     })
 }
 

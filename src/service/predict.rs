@@ -7,21 +7,19 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
-use base64::Engine;
-use image::RgbImage;
-
 use super::admission::{Admission, Ticket};
 use super::api::{
     BatchItem, ErrorDetail, KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, SkippedPerson, Timings,
 };
 use super::policy::choose_mode;
 use crate::error::{Error, Result};
-use crate::frame::{Box2d, Frame};
+use crate::frame::{Box2d, Frame, RgbPixels};
 use crate::geometry::{clip_to_image, overlaps_image, projected_box, BoxFrame, Camera};
+use crate::image_decode::{self, CameraImage};
 use crate::keypoints::{K, NAMES, WAYMO_TYPES};
 use crate::pipeline::{
-    crop_rgb, decode_heatmaps, facing, fused_points, keypoints_to_vehicle, lidar_points, lift, normalize,
-    prepare_person, smoothed_features, PipelineConfig, PointInput,
+    decode_heatmaps, facing, fused_points, keypoints_to_vehicle, lidar_points, lift, normalize, plan_decode,
+    prepare_person, smoothed_features, CropTransform, PipelineConfig, PointInput,
 };
 use crate::runtime::{Bundle, ChainStep, JobOutput, ModelKind, Runtime};
 
@@ -32,13 +30,6 @@ pub struct Predictor {
     runtime: Arc<RwLock<Arc<Runtime>>>,
     admission: Arc<Admission>,
     limits: super::limits::FrameLimits,
-}
-
-/// The camera image of a frame after decoding.
-enum ImageState {
-    Absent,
-    Undecodable(String),
-    Decoded(RgbImage),
 }
 
 /// Everything decided before inference for one person.
@@ -151,7 +142,9 @@ impl Predictor {
             let _permit = permit;
             let cfg = bundle.config();
             limits.check(&frame)?;
-            plan_frame(&frame, raw_image, cfg, &abandoned).map(|p| (p, frame.frame_id))
+            let mut frame = frame;
+            let pixels = frame.image_rgb.take();
+            plan_frame(&frame, raw_image, pixels, cfg, &abandoned).map(|p| (p, frame.frame_id))
         })
         .await
         .map_err(|e| Error::Runtime(format!("pre-processing task failed: {e}")))?;
@@ -308,43 +301,6 @@ fn triples(v: &[f32]) -> Vec<[f32; 3]> {
     v.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect()
 }
 
-fn decode_image(frame: &Frame, raw_image: Option<Vec<u8>>) -> Result<ImageState> {
-    let bytes = match raw_image {
-        Some(b) if b.is_empty() => return Ok(ImageState::Absent),
-        Some(b) => b,
-        None => match &frame.image {
-            None => return Ok(ImageState::Absent),
-            Some(text) => match base64::engine::general_purpose::STANDARD.decode(text.as_bytes()) {
-                Ok(b) => b,
-                Err(e) => return Ok(ImageState::Undecodable(format!("image is not valid base64: {e}"))),
-            },
-        },
-    };
-    // The size is checked on the header, before any pixel is decoded.
-    let c = &frame.calibration;
-    if !super::limits::check_image_header(&bytes, c.width, c.height)? {
-        return Ok(ImageState::Undecodable("image is not a decodable JPEG or PNG: unreadable header".into()));
-    }
-    let img = match image::load_from_memory(&bytes) {
-        Ok(img) => img.into_rgb8(),
-        Err(e) => return Ok(ImageState::Undecodable(format!("image is not a decodable JPEG or PNG: {e}"))),
-    };
-    let c = &frame.calibration;
-    if img.width() != c.width || img.height() != c.height {
-        return Err(Error::field(
-            "image",
-            format!(
-                "decoded image is {}x{} but calibration.width/height say {}x{}",
-                img.width(),
-                img.height(),
-                c.width,
-                c.height
-            ),
-        ));
-    }
-    Ok(ImageState::Decoded(img))
-}
-
 /// Persons per frame by default: each one scans every point of the frame, so the work is
 /// bounded here (`--max-persons`).
 pub const MAX_PERSONS: usize = 256;
@@ -366,6 +322,7 @@ fn check_box_size(b: &Box2d, field: &str, width: u32, height: u32) -> Result<()>
 fn plan_frame(
     frame: &Frame,
     raw_image: Option<Vec<u8>>,
+    pixels: Option<RgbPixels>,
     cfg: &PipelineConfig,
     abandoned: &AtomicBool,
 ) -> Result<FramePlan> {
@@ -378,10 +335,16 @@ fn plan_frame(
         return Err(Error::field("points", "no LiDAR points: every mode needs the points of the persons' boxes"));
     }
     still_wanted(abandoned)?;
-    let image = decode_image(frame, raw_image)?;
-    let decode = t0.elapsed();
+    // the header only (its size checked against the calibration): the pixels are decoded once
+    // the crops are known
+    let image = image_decode::open(frame, raw_image, pixels)?;
+    let mut decode = t0.elapsed();
     let t1 = Instant::now();
     let mut persons = Vec::with_capacity(frame.persons.len());
+    let mut crops: Vec<Option<CropTransform>> = Vec::with_capacity(frame.persons.len());
+    // every person's window, whatever its mode: the simulator plans its fixtures' decodes from
+    // all of them, so a crop is cut from the same decode in training and in serving
+    let mut windows = Vec::with_capacity(frame.persons.len());
     let mut crop_budget = super::limits::CropBudget::for_image(camera.width, camera.height);
     let mut skipped = Vec::new();
     let mut skip = |index: usize, id: &str, e: Error| {
@@ -412,6 +375,7 @@ fn plan_frame(
             }),
         };
         let prepared = prepare_person(None, Some(&camera), &points, &person.box_3d, box_2d.as_ref(), cfg);
+        windows.extend(prepared.crop);
         let num_points = prepared.points.len();
         let Some(input) = prepared.input else {
             let why = format!("no LiDAR point lies inside the box (grown by {} m on every side)", cfg.box_margin);
@@ -419,13 +383,13 @@ fn plan_frame(
             continue;
         };
         let camera_problem: Option<(String, String)> = match (&image, box_2d) {
-            (ImageState::Absent, _) => Some(("image".into(), "no image in the request".into())),
-            (ImageState::Undecodable(m), _) => Some(("image".into(), m.clone())),
-            (ImageState::Decoded(_), None) => Some((
+            (CameraImage::Absent, _) => Some(("image".into(), "no image in the request".into())),
+            (CameraImage::Undecodable(m), _) => Some(("image".into(), m.clone())),
+            (_, None) => Some((
                 format!("{field}.box_2d"),
                 "no 2D box given and the projected 3D box is outside the camera view".into(),
             )),
-            (ImageState::Decoded(_), Some(_)) => None,
+            (_, Some(_)) => None,
         };
         let (mode, reason) = choose_mode(frame.mode, camera_problem, num_points, cfg.min_points as usize)?;
         if mode == Mode::Camera && !input.uv.iter().any(|uv| uv[0].is_finite() && uv[1].is_finite()) {
@@ -433,16 +397,17 @@ fn plan_frame(
             skip(i, &person.id, Error::InsufficientData { field: format!("{field}.box_3d"), message: why.into() });
             continue;
         }
-        let image_input = match (mode, &image, prepared.crop.as_ref()) {
-            (Mode::Fusion | Mode::Camera, ImageState::Decoded(img), Some(t)) => {
+        let crop = match (mode, image.usable(), prepared.crop) {
+            (Mode::Fusion | Mode::Camera, true, Some(t)) => {
                 crop_budget.spend(t.side(), &field)?;
-                Some(normalize(&crop_rgb(img, t), cfg))
+                Some(t)
             }
             (Mode::Fusion | Mode::Camera, _, _) => {
                 return Err(Error::Runtime(format!("{field}: camera mode chosen without a crop")));
             }
             (Mode::Lidar, _, _) => None,
         };
+        crops.push(crop);
         persons.push(PersonPlan {
             id: person.id.clone(),
             mode,
@@ -451,10 +416,37 @@ fn plan_frame(
             box_2d,
             num_points,
             input,
-            image_input,
+            image_input: None,
         });
     }
-    Ok(FramePlan { camera, persons, skipped, decode, preprocess: t1.elapsed() })
+    // Decode only what the crops need (`pipeline::plan_decode`), then cut them.
+    let mut decode_pixels = Duration::ZERO;
+    if crops.iter().any(Option::is_some) {
+        still_wanted(abandoned)?;
+        let t2 = Instant::now();
+        let decoded = image_decode::decode(image, &plan_decode(&windows, camera.width, camera.height));
+        decode_pixels = t2.elapsed();
+        match decoded {
+            Ok(img) => {
+                for (p, t) in persons.iter_mut().zip(&crops) {
+                    p.image_input = t.map(|t| normalize(&img.crop(&t), cfg));
+                }
+            }
+            // the header was sound but the pixels are not
+            Err(why) if frame.mode == crate::frame::RequestedMode::Auto => {
+                for (p, t) in persons.iter_mut().zip(&crops) {
+                    if t.is_some() {
+                        (p.mode, p.reason) = (Mode::Lidar, format!("camera unusable: {why}"));
+                    }
+                }
+            }
+            Err(why) => {
+                return Err(Error::field("image", format!("mode {:?} needs the camera: {why}", frame.mode)));
+            }
+        }
+    }
+    decode += decode_pixels;
+    Ok(FramePlan { camera, persons, skipped, decode, preprocess: t1.elapsed().saturating_sub(decode_pixels) })
 }
 
 #[cfg(test)]

@@ -3,10 +3,12 @@
 //!
 //! Frames with a fixture render the full image (at image resolution inside the labelled persons'
 //! crop windows, at quarter resolution elsewhere), go through JPEG (quality 92) and crop from the
-//! decoded image, exactly as the server will. Training-only frames render just the crop window:
-//! at image resolution when the window is at most 2·S pixels wide (then through the same JPEG
-//! codec), otherwise one ray per step×step block with step = ceil(side / 2S), i.e. at least 2×2
-//! supersampling of the S×S crop; the crop is then cut by the same `crop_rgb`.
+//! image decoded exactly as the server decodes it (`image_decode`: the frame's decode plan, i.e.
+//! the DCT scale and region its crop windows need). Training-only frames render just the crop
+//! window: at image resolution when the window is at most 2·S pixels wide (then through the same
+//! JPEG codec and planned decode), otherwise one ray per step×step block with
+//! step = ceil(side / 2S), i.e. at least 2×2 supersampling of the S×S crop; the crop is then cut
+//! by the same `crop_rgb`.
 
 use std::io::Cursor;
 use std::path::{Path, PathBuf};
@@ -25,8 +27,11 @@ use super::street::Profile;
 use super::world::{lidar_range, sample_world, World, LIDAR_ORIGIN};
 use crate::error::{Error, Result};
 use crate::frame::{Frame, GroundTruth, Keypoints2d, Keypoints3d, Person, Points, RequestedMode};
+use crate::image_decode::{self, DecodedImage};
 use crate::keypoints::K;
-use crate::pipeline::{crop_rgb, input_seed, prepare_person, select_indices, to_local, CropTransform, PipelineConfig};
+use crate::pipeline::{
+    crop_rgb, input_seed, plan_decode, prepare_person, select_indices, to_local, CropTransform, PipelineConfig,
+};
 
 /// Samples per shard.
 pub const SHARD_SIZE: usize = 1024;
@@ -128,14 +133,22 @@ pub fn render_crop(world: &World, t: &CropTransform) -> Result<RgbImage> {
         h: ((wy1 - wy0 + step - 1) / step) as u32,
         step: step as u32,
     };
-    let mut patch = render(world, region).image;
-    if step == 1 {
-        patch = decode_jpeg(&encode_jpeg(&patch)?)?;
-    }
+    let patch = render(world, region).image;
     let s = step as f64;
     let local =
         CropTransform { x0: (t.x0 - wx0 as f64) / s, y0: (t.y0 - wy0 as f64) / s, scale: t.scale * s, size: t.size };
+    if step == 1 {
+        let jpeg = encode_jpeg(&patch)?;
+        return Ok(planned_decode(&jpeg, &[local], patch.width(), patch.height())?.crop(&local));
+    }
     Ok(crop_rgb(&patch, &local))
+}
+
+/// A JPEG decoded the way the server decodes a request whose crop windows are `windows`.
+pub fn planned_decode(jpeg: &[u8], windows: &[CropTransform], width: u32, height: u32) -> Result<DecodedImage> {
+    let plan = plan_decode(windows, width, height);
+    image_decode::decode(image_decode::CameraImage::Jpeg(jpeg.to_vec()), &plan)
+        .map_err(|e| Error::Io(format!("jpeg decode: {e}")))
 }
 
 /// Bilinear ×4 upsampling (pixel centres aligned) to `w`×`h`.
@@ -221,18 +234,17 @@ pub fn simulate_frame(
     let full = if with_fixture {
         let windows: Vec<CropTransform> = labelled.iter().map(|l| CropTransform::for_box(&l.2.box2d, cfg)).collect();
         let jpeg = encode_jpeg(&render_frame_image(&world, &windows))?;
-        Some((decode_jpeg(&jpeg)?, jpeg))
+        Some((planned_decode(&jpeg, &windows, cam.width, cam.height)?, jpeg))
     } else {
         None
     };
     let mut out = FrameResult { index, samples: Vec::new(), stats: Vec::new(), fixture: None };
     let mut fixture_persons = Vec::new();
     for (li, p, labels, on_person) in labelled {
-        let prepared =
-            prepare_person(full.as_ref().map(|f| &f.0), Some(cam), &points, &p.box3d, Some(&labels.box2d), cfg);
+        let prepared = prepare_person(None, Some(cam), &points, &p.box3d, Some(&labels.box2d), cfg);
         let t = CropTransform::for_box(&labels.box2d, cfg);
-        let crop = match prepared.crop_rgb.clone() {
-            Some(c) => c,
+        let crop = match &full {
+            Some((decoded, _)) => decoded.crop(&t),
             None => render_crop(&world, &t)?,
         };
         let points_uv = prepared.points.model_uv(Some(cam), Some(&t));
@@ -259,6 +271,7 @@ pub fn simulate_frame(
         out.fixture = Some(Frame {
             frame_id: Some(format!("sim-{seed}-{index:06}")),
             image: Some(base64::engine::general_purpose::STANDARD.encode(jpeg)),
+            image_rgb: None,
             calibration: calib,
             points: Points::encode(&points),
             persons: fixture_persons,

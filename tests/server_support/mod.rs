@@ -134,6 +134,7 @@ pub fn fusion_frame() -> Frame {
     Frame {
         frame_id: Some("f-1".into()),
         image: Some(image_b64(&[box_2d(&b)])),
+        image_rgb: None,
         calibration: calibration(),
         points: Points::encode(&points_in(&b, 300)),
         persons: vec![person("ped-1", b, true)],
@@ -153,6 +154,7 @@ pub fn three_mode_frame() -> Frame {
     Frame {
         frame_id: Some("f-3".into()),
         image: Some(image_b64(&[box_2d(&a), box_2d(&c)])),
+        image_rgb: None,
         calibration: calibration(),
         points: Points::encode(&pts),
         persons: vec![person("near", a, true), person("behind", b, false), person("sparse", c, false)],

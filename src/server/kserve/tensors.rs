@@ -564,7 +564,8 @@ pub fn frame_from_inputs(inputs: Vec<InputTensor>, frame_id: Option<String>) -> 
         };
         persons.push(Person { id, box_2d, box_3d, ground_truth: None });
     }
-    let frame = Frame { frame_id, image: None, calibration, points: Points::Flat(flat), persons, mode };
+    let frame =
+        Frame { frame_id, image: None, image_rgb: None, calibration, points: Points::Flat(flat), persons, mode };
     // Checked here so that errors name the tensor rather than the frame's field.
     frame.validate().map_err(rename_error)?;
     Ok((frame, image))

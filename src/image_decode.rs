@@ -1,0 +1,280 @@
+//! The frame's camera image, decoded only as far as its crops need.
+//!
+//! [`open`] reads the header only and refuses an image whose size disagrees with the calibration
+//! before any pixel is decoded. [`decode`] then carries out a [`DecodePlan`]
+//! (`pipeline::plan_decode`). Crops are cut from the result with [`DecodedImage::crop`], in
+//! serving and when the simulator writes fixtures and training samples alike.
+//!
+//! By default a JPEG is decoded whole at full resolution by the `image` crate (zune-jpeg): measured
+//! on the street fixtures (BENCHMARKS.md) it beats the only maintained pure-Rust decoder with DCT
+//! scaling, the `jpeg-decoder` crate, at every scale, because entropy decoding (the same at every
+//! scale) dominates and zune-jpeg's is much faster. `POSEFUSE_DECODE=scaled` (read once) carries
+//! out the plan's DCT scale with `jpeg-decoder`'s reduced-size IDCT instead (½, ¼ or ⅛: a 4×4,
+//! 2×2 or 1×1 inverse transform per 8×8 block), for comparisons and for a faster scaling decoder
+//! later. PNG and raw RGB8 pixels are used at full resolution.
+
+use std::io::Cursor;
+use std::sync::OnceLock;
+
+use base64::Engine;
+use image::RgbImage;
+
+use crate::error::{Error, Result};
+use crate::frame::{Frame, RgbPixels};
+use crate::pipeline::{crop_rgb, scaled, CropTransform, DecodePlan};
+
+/// The camera image of a request, before its pixels are decoded.
+pub enum CameraImage {
+    /// No image in the request.
+    Absent,
+    /// An image the camera models cannot use, and why.
+    Undecodable(String),
+    /// JPEG file bytes whose header matches the calibration.
+    Jpeg(Vec<u8>),
+    /// PNG file bytes whose header matches the calibration.
+    Png(Vec<u8>),
+    /// Decoded RGB8 pixels sent by the caller, size checked.
+    Pixels(RgbImage),
+}
+
+impl CameraImage {
+    /// Whether the camera models can run on this image (its header, at least, is sound).
+    pub fn usable(&self) -> bool {
+        matches!(self, CameraImage::Jpeg(_) | CameraImage::Png(_) | CameraImage::Pixels(_))
+    }
+}
+
+/// An image decoded at `1/denominator` of its full resolution.
+pub struct DecodedImage {
+    pub image: RgbImage,
+    pub denominator: u32,
+}
+
+impl DecodedImage {
+    /// The S×S crop of full-resolution window `t` (see `pipeline::scaled`).
+    pub fn crop(&self, t: &CropTransform) -> RgbImage {
+        crop_rgb(&self.image, &scaled(t, self.denominator))
+    }
+}
+
+/// Whether `POSEFUSE_DECODE=scaled` asks for JPEG decodes at the plan's DCT scale.
+pub fn scaled_decode_enabled() -> bool {
+    static SCALED: OnceLock<bool> = OnceLock::new();
+    *SCALED.get_or_init(|| std::env::var("POSEFUSE_DECODE").is_ok_and(|v| v.eq_ignore_ascii_case("scaled")))
+}
+
+/// The frame's image, header read and checked: `raw_image` (file bytes, as gRPC sends them)
+/// replaces `frame.image` (base64) when given; `pixels` (taken out of `frame.image_rgb`, so that
+/// they are not copied) are raw pixels.
+pub fn open(frame: &Frame, raw_image: Option<Vec<u8>>, pixels: Option<RgbPixels>) -> Result<CameraImage> {
+    let c = &frame.calibration;
+    let encoded_given = raw_image.as_ref().is_some_and(|b| !b.is_empty()) || frame.image.is_some();
+    if let Some(px) = pixels.or_else(|| frame.image_rgb.clone()) {
+        if encoded_given {
+            return Err(Error::field("image_rgb", "send either an encoded image or image_rgb pixels, not both"));
+        }
+        return px.into_image(c.width, c.height).map(CameraImage::Pixels);
+    }
+    let bytes = match raw_image {
+        Some(b) if b.is_empty() => return Ok(CameraImage::Absent),
+        Some(b) => b,
+        None => match &frame.image {
+            None => return Ok(CameraImage::Absent),
+            Some(text) => match base64::engine::general_purpose::STANDARD.decode(text.as_bytes()) {
+                Ok(b) => b,
+                Err(e) => return Ok(CameraImage::Undecodable(format!("image is not valid base64: {e}"))),
+            },
+        },
+    };
+    let (size, image) = if bytes.starts_with(&[0xFF, 0xD8]) {
+        match jpeg_size(&bytes) {
+            Ok(size) => (size, CameraImage::Jpeg(bytes)),
+            Err(e) => return Ok(CameraImage::Undecodable(format!("image is not a decodable JPEG: {e}"))),
+        }
+    } else if bytes.starts_with(b"\x89PNG") {
+        match png_size(&bytes) {
+            Ok(size) => (size, CameraImage::Png(bytes)),
+            Err(e) => return Ok(CameraImage::Undecodable(format!("image is not a decodable PNG: {e}"))),
+        }
+    } else {
+        return Ok(CameraImage::Undecodable("image is not a decodable JPEG or PNG: unknown file signature".into()));
+    };
+    if size != (c.width, c.height) {
+        return Err(Error::field(
+            "image",
+            format!(
+                "image header says {}x{} but calibration.width/height say {}x{}",
+                size.0, size.1, c.width, c.height
+            ),
+        ));
+    }
+    Ok(image)
+}
+
+fn jpeg_size(bytes: &[u8]) -> std::result::Result<(u32, u32), String> {
+    let mut d = jpeg_decoder::Decoder::new(bytes);
+    guard(|| d.read_info().map_err(|e| e.to_string()))?;
+    let info = d.info().ok_or("no frame header")?;
+    Ok((info.width as u32, info.height as u32))
+}
+
+fn png_size(bytes: &[u8]) -> std::result::Result<(u32, u32), String> {
+    image::ImageReader::with_format(Cursor::new(bytes), image::ImageFormat::Png)
+        .into_dimensions()
+        .map_err(|e| e.to_string())
+}
+
+/// Runs a third-party decoder step, turning a panic on hostile input into an error.
+fn guard<T>(f: impl FnOnce() -> std::result::Result<T, String>) -> std::result::Result<T, String> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).unwrap_or_else(|_| Err("decoder failed".into()))
+}
+
+/// Decodes `image` as `plan` says; the error says why the pixels could not be decoded.
+pub fn decode(image: CameraImage, plan: &DecodePlan) -> std::result::Result<DecodedImage, String> {
+    match image {
+        CameraImage::Pixels(image) => Ok(DecodedImage { image, denominator: 1 }),
+        CameraImage::Jpeg(bytes) if scaled_decode_enabled() => decode_jpeg(&bytes, plan.denominator),
+        CameraImage::Jpeg(bytes) => decode_with_image_crate(&bytes, image::ImageFormat::Jpeg),
+        CameraImage::Png(bytes) => decode_with_image_crate(&bytes, image::ImageFormat::Png),
+        CameraImage::Absent => Err("no image in the request".into()),
+        CameraImage::Undecodable(why) => Err(why),
+    }
+}
+
+fn decode_with_image_crate(bytes: &[u8], format: image::ImageFormat) -> std::result::Result<DecodedImage, String> {
+    let image = image::load_from_memory_with_format(bytes, format)
+        .map_err(|e| format!("image is not a decodable JPEG or PNG: {e}"))?
+        .into_rgb8();
+    Ok(DecodedImage { image, denominator: 1 })
+}
+
+/// A JPEG at `1/denominator` (1, 2, 4 or 8) of its size.
+pub fn decode_jpeg(bytes: &[u8], denominator: u32) -> std::result::Result<DecodedImage, String> {
+    use jpeg_decoder::PixelFormat;
+    let d = denominator.clamp(1, 8);
+    let mut dec = jpeg_decoder::Decoder::new(bytes);
+    let decoded = guard(|| {
+        dec.read_info().map_err(|e| e.to_string())?;
+        let info = dec.info().ok_or("no frame header")?;
+        let (w, h) = (info.width as u32, info.height as u32);
+        let want = (w.div_ceil(d), h.div_ceil(d));
+        let (ow, oh) = if d > 1 {
+            let (ow, oh) = dec.scale(want.0 as u16, want.1 as u16).map_err(|e| e.to_string())?;
+            (ow as u32, oh as u32)
+        } else {
+            (w, h)
+        };
+        let pixels = dec.decode().map_err(|e| e.to_string())?;
+        let format = dec.info().map(|i| i.pixel_format);
+        Ok((pixels, format, (ow, oh), want))
+    });
+    let (pixels, format, (ow, oh), want) = decoded.map_err(|e| format!("image is not a decodable JPEG: {e}"))?;
+    let rgb = match format {
+        Some(PixelFormat::RGB24) => pixels,
+        Some(PixelFormat::L8) => pixels.iter().flat_map(|&v| [v, v, v]).collect(),
+        // CMYK and 16-bit JPEGs: the general decoder, whole
+        _ => return decode_with_image_crate(bytes, image::ImageFormat::Jpeg),
+    };
+    let image = RgbImage::from_raw(ow, oh, rgb).ok_or("decoded JPEG has the wrong number of pixels")?;
+    if (ow, oh) != want {
+        // a scale the decoder did not honour exactly would misplace every crop
+        return decode_with_image_crate(bytes, image::ImageFormat::Jpeg);
+    }
+    Ok(DecodedImage { image, denominator: d })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::pipeline::{plan_decode, DCT_DENOMINATORS};
+
+    /// A smooth test pattern with some detail, JPEG-encoded at quality 92 (4:2:0, like the
+    /// simulator's fixtures).
+    fn pattern(w: u32, h: u32) -> (RgbImage, Vec<u8>) {
+        let img = RgbImage::from_fn(w, h, |x, y| {
+            let (fx, fy) = (x as f64 / w as f64, y as f64 / h as f64);
+            let r = 128.0 + 100.0 * (fx * 9.0).sin() * (fy * 5.0).cos();
+            let g = 128.0 + 90.0 * ((fx + fy) * 7.0).cos();
+            let b = if (x / 40 + y / 40) % 2 == 0 { 200.0 } else { 60.0 };
+            image::Rgb([r as u8, g as u8, b as u8])
+        });
+        let jpeg = crate::sim::dataset::encode_jpeg(&img).unwrap();
+        (img, jpeg)
+    }
+
+    #[test]
+    fn scaled_decodes_have_the_planned_size_and_full_matches_the_image_crate() {
+        let (_, jpeg) = pattern(333, 250);
+        for d in DCT_DENOMINATORS {
+            let out = decode_jpeg(&jpeg, d).unwrap();
+            assert_eq!(out.denominator, d);
+            assert_eq!(out.image.dimensions(), (333u32.div_ceil(d), 250u32.div_ceil(d)));
+        }
+        // two conforming decoders of the same file differ by rounding only
+        let ours = decode_jpeg(&jpeg, 1).unwrap().image;
+        let reference = decode_with_image_crate(&jpeg, image::ImageFormat::Jpeg).unwrap().image;
+        let worst = ours.as_raw().iter().zip(reference.as_raw()).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
+        assert!(worst <= 8, "full decodes differ by {worst}");
+    }
+
+    #[test]
+    fn a_crop_from_a_scaled_decode_matches_the_full_decode_crop() {
+        let (_, jpeg) = pattern(960, 640);
+        let full = decode_with_image_crate(&jpeg, image::ImageFormat::Jpeg).unwrap();
+        let t = CropTransform { x0: 301.7, y0: 122.4, scale: 64.0 / 410.0, size: 64 };
+        let plan = plan_decode(&[t], 960, 640);
+        assert_eq!(plan.denominator, 4);
+        let reference = full.crop(&t);
+        for d in [2, 4] {
+            let crop = decode_jpeg(&jpeg, d).unwrap().crop(&t);
+            let diffs: Vec<u32> =
+                crop.as_raw().iter().zip(reference.as_raw()).map(|(a, b)| a.abs_diff(*b) as u32).collect();
+            let mean = diffs.iter().sum::<u32>() as f64 / diffs.len() as f64;
+            // a reduced IDCT keeps the block's low frequencies rather than averaging its pixels:
+            // close to the box filter's result, not equal (sharp 140-level edges in this pattern)
+            assert!(mean < 3.0, "1/{d}: mean difference {mean}");
+        }
+    }
+
+    fn frame_with(image: Option<String>, w: u32, h: u32) -> Frame {
+        let mut f: Frame = serde_json::from_value(serde_json::json!({
+            "calibration": {"intrinsic": [100.0, 100.0, 50.0, 40.0, 0, 0, 0, 0, 0],
+                "extrinsic": [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1], "width": w, "height": h},
+            "points": [], "persons": []
+        }))
+        .unwrap();
+        f.image = image;
+        f
+    }
+
+    #[test]
+    fn a_header_that_disagrees_with_the_calibration_is_refused_before_decoding() {
+        let (_, jpeg) = pattern(120, 80);
+        let b64 = base64::engine::general_purpose::STANDARD.encode(&jpeg);
+        assert!(matches!(open(&frame_with(Some(b64.clone()), 120, 80), None, None).unwrap(), CameraImage::Jpeg(_)));
+        let e = open(&frame_with(Some(b64), 121, 80), None, None).err().unwrap();
+        assert_eq!(e.field_name(), Some("image"));
+        assert!(e.to_string().contains("120x80"), "{e}");
+        // a PNG goes the same way
+        let mut png = Vec::new();
+        pattern(50, 30).0.write_to(&mut Cursor::new(&mut png), image::ImageFormat::Png).unwrap();
+        assert!(matches!(open(&frame_with(None, 50, 30), Some(png.clone()), None).unwrap(), CameraImage::Png(_)));
+        assert_eq!(open(&frame_with(None, 50, 31), Some(png.clone()), None).err().unwrap().field_name(), Some("image"));
+        let CameraImage::Png(bytes) = open(&frame_with(None, 50, 30), Some(png), None).unwrap() else { unreachable!() };
+        assert_eq!(decode(CameraImage::Png(bytes), &DecodePlan::full(50, 30)).unwrap().image.dimensions(), (50, 30));
+    }
+
+    #[test]
+    fn garbage_is_undecodable_not_an_error() {
+        for bytes in [vec![0xFF, 0xD8, 0xFF, 0x00, 1, 2, 3], b"GIF89a....".to_vec()] {
+            let got = open(&frame_with(None, 10, 10), Some(bytes), None).unwrap();
+            assert!(matches!(got, CameraImage::Undecodable(_)));
+        }
+        // a JPEG cut short after its header: the header passes, the decode fails cleanly
+        let (_, jpeg) = pattern(200, 120);
+        let cut = jpeg[..jpeg.len() / 3].to_vec();
+        if let CameraImage::Jpeg(b) = open(&frame_with(None, 200, 120), Some(cut), None).unwrap() {
+            let _ = decode(CameraImage::Jpeg(b), &DecodePlan::full(200, 120));
+        }
+    }
+}

@@ -1,0 +1,173 @@
+//! How much of a frame's image the persons' crops need: the smallest JPEG DCT scale (1, ½, ¼, ⅛)
+//! at which every crop window still spans at least the network's S pixels, and the full-resolution
+//! region the crops read. Pure: the decoder (`crate::image_decode`) carries the plan out.
+//!
+//! A crop cut from an image decoded at `1/d` uses the window [`scaled`] by `d`: pixel `(i, j)` of
+//! the scaled image covers full-resolution pixels `[d·j, d·(j+1)) × [d·i, d·(i+1))`, so the window
+//! covers the same part of the scene, and the resize still only reduces (never enlarges).
+
+use super::CropTransform;
+
+/// The DCT scales a baseline JPEG decoder offers, as denominators, largest reduction first.
+pub const DCT_DENOMINATORS: [u32; 4] = [8, 4, 2, 1];
+
+/// A rectangle of full-resolution pixels, half-open: columns `x0..x1`, rows `y0..y1`.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct PixelRect {
+    pub x0: u32,
+    pub y0: u32,
+    pub x1: u32,
+    pub y1: u32,
+}
+
+impl PixelRect {
+    /// Pixels in the rectangle.
+    pub fn area(&self) -> u64 {
+        (self.x1.saturating_sub(self.x0)) as u64 * (self.y1.saturating_sub(self.y0)) as u64
+    }
+}
+
+/// What to decode for one frame.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct DecodePlan {
+    /// Decode at `1/denominator` of full resolution (1, 2, 4 or 8).
+    pub denominator: u32,
+    /// The full-resolution pixels the crops read (windows plus the resize filter's margin),
+    /// clipped to the image; `None` when no window touches the image (every crop is black).
+    pub region: Option<PixelRect>,
+}
+
+impl DecodePlan {
+    /// Full resolution, whole image: what a frame without crop windows, or a decoder without DCT
+    /// scaling, gets.
+    pub fn full(width: u32, height: u32) -> DecodePlan {
+        DecodePlan { denominator: 1, region: Some(PixelRect { x0: 0, y0: 0, x1: width, y1: height }) }
+    }
+}
+
+/// The crop window `t` on an image decoded at `1/denominator`.
+pub fn scaled(t: &CropTransform, denominator: u32) -> CropTransform {
+    let d = denominator.max(1) as f64;
+    CropTransform { x0: t.x0 / d, y0: t.y0 / d, scale: t.scale * d, size: t.size }
+}
+
+/// Whether `t` is a window `crop_rgb` cuts from the image at all (finite, not absurdly large,
+/// overlapping it); other windows give black crops at any scale and constrain nothing.
+fn usable(t: &CropTransform, width: u32, height: u32) -> bool {
+    let side = t.side();
+    let (w, h) = (width as f64, height as f64);
+    let limit = 16.0 * w.max(h).max(1.0);
+    t.x0.is_finite()
+        && t.y0.is_finite()
+        && side.is_finite()
+        && side > 0.0
+        && side <= limit
+        && t.x0 < w
+        && t.y0 < h
+        && t.x0 + side > 0.0
+        && t.y0 + side > 0.0
+}
+
+/// The plan for crop windows `windows` on a `width`×`height` image: the largest reduction at
+/// which every usable window keeps at least its output size `S` in decoded pixels
+/// (`side / d ≥ S`), and the union of the windows' full-resolution reads.
+pub fn plan_decode(windows: &[CropTransform], width: u32, height: u32) -> DecodePlan {
+    let used: Vec<&CropTransform> = windows.iter().filter(|t| usable(t, width, height)).collect();
+    if used.is_empty() {
+        return DecodePlan { denominator: 1, region: None };
+    }
+    let denominator =
+        DCT_DENOMINATORS.into_iter().find(|&d| used.iter().all(|t| t.side() / d as f64 >= t.size as f64)).unwrap_or(1);
+    let (mut x0, mut y0, mut x1, mut y1) = (i64::MAX, i64::MAX, i64::MIN, i64::MIN);
+    for t in &used {
+        // `crop_rgb`'s read on the scaled image (window plus filter margin), in full-res pixels
+        let s = scaled(t, denominator);
+        let margin = (1.0 / s.scale).ceil() as i64 + 2;
+        let d = denominator as i64;
+        x0 = x0.min((s.x0.floor() as i64 - margin) * d);
+        y0 = y0.min((s.y0.floor() as i64 - margin) * d);
+        x1 = x1.max(((s.x0 + s.side()).ceil() as i64 + margin) * d);
+        y1 = y1.max(((s.y0 + s.side()).ceil() as i64 + margin) * d);
+    }
+    let clip = |v: i64, n: u32| v.clamp(0, n as i64) as u32;
+    let region = PixelRect { x0: clip(x0, width), y0: clip(y0, height), x1: clip(x1, width), y1: clip(y1, height) };
+    DecodePlan { denominator, region: (region.area() > 0).then_some(region) }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::frame::Box2d;
+    use crate::pipeline::PipelineConfig;
+
+    fn window(cx: f64, cy: f64, side: f64, s: u32) -> CropTransform {
+        CropTransform { x0: cx - side / 2.0, y0: cy - side / 2.0, scale: s as f64 / side, size: s }
+    }
+
+    #[test]
+    fn the_smallest_window_sets_the_scale() {
+        // S = 64: a 300 px window allows 1/4 (75 ≥ 64) but not 1/8 (37.5 < 64)
+        assert_eq!(plan_decode(&[window(500.0, 500.0, 300.0, 64)], 1920, 1280).denominator, 4);
+        assert_eq!(plan_decode(&[window(500.0, 500.0, 512.0, 64)], 1920, 1280).denominator, 8);
+        assert_eq!(plan_decode(&[window(500.0, 500.0, 128.0, 64)], 1920, 1280).denominator, 2);
+        assert_eq!(plan_decode(&[window(500.0, 500.0, 127.9, 64)], 1920, 1280).denominator, 1);
+        // a second, smaller person lowers the reduction for the frame
+        let both = [window(500.0, 500.0, 512.0, 64), window(1500.0, 300.0, 140.0, 64)];
+        assert_eq!(plan_decode(&both, 1920, 1280).denominator, 2);
+    }
+
+    #[test]
+    fn every_window_keeps_at_least_s_decoded_pixels() {
+        let cfg = PipelineConfig::with_image_size(64);
+        for h in [20.0, 60.0, 107.0, 110.0, 250.0, 433.0, 900.0] {
+            let b = Box2d { center_x: 900.0, center_y: 600.0, width: h / 3.0, height: h };
+            let t = CropTransform::for_box(&b, &cfg);
+            let p = plan_decode(&[t], 1920, 1280);
+            let s = scaled(&t, p.denominator);
+            assert!(s.side() >= 64.0 - 1e-9 || p.denominator == 1, "box {h}: side {} at 1/{}", s.side(), p.denominator);
+            // and the next reduction would not
+            assert!(p.denominator == 8 || t.side() / ((2 * p.denominator) as f64) < 64.0, "box {h}");
+        }
+    }
+
+    #[test]
+    fn the_region_covers_every_window_and_its_filter_margin_and_stays_in_the_image() {
+        let a = window(300.0, 400.0, 200.0, 64);
+        let b = window(1200.0, 900.0, 150.0, 64);
+        let p = plan_decode(&[a, b], 1920, 1280);
+        assert_eq!(p.denominator, 2);
+        let r = p.region.unwrap();
+        for t in [a, b] {
+            assert!(r.x0 as f64 <= t.x0 - 2.0 && r.y0 as f64 <= t.y0 - 2.0);
+            assert!(r.x1 as f64 >= t.x0 + t.side() + 2.0 && r.y1 as f64 >= t.y0 + t.side() + 2.0);
+        }
+        // not much more than the windows' bounding box (margin of a few pixels)
+        assert!(r.x0 >= 190 && r.y0 >= 290 && r.x1 <= 1290 && r.y1 <= 990, "{r:?}");
+        // a window hanging off the corner is clipped
+        let edge = plan_decode(&[window(10.0, 10.0, 200.0, 64)], 1920, 1280).region.unwrap();
+        assert_eq!((edge.x0, edge.y0), (0, 0));
+        assert!(edge.x1 < 200 && edge.y1 < 200);
+    }
+
+    #[test]
+    fn windows_that_miss_the_image_constrain_nothing() {
+        let off = window(-500.0, 300.0, 100.0, 64);
+        let nan = CropTransform { x0: f64::NAN, ..off };
+        assert_eq!(plan_decode(&[off, nan], 1920, 1280), DecodePlan { denominator: 1, region: None });
+        let big = window(900.0, 600.0, 600.0, 64);
+        assert_eq!(plan_decode(&[off, big], 1920, 1280).denominator, 8);
+        assert_eq!(plan_decode(&[], 1920, 1280).region, None);
+    }
+
+    #[test]
+    fn a_scaled_window_maps_the_same_scene_point_to_the_same_model_pixel() {
+        let t = window(701.3, 455.9, 333.0, 64);
+        for d in DCT_DENOMINATORS {
+            let s = scaled(&t, d);
+            let p = [812.5, 520.25];
+            let a = t.to_model(p);
+            let b = s.to_model([p[0] / d as f64, p[1] / d as f64]);
+            assert!((a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9);
+        }
+    }
+}
