@@ -103,7 +103,7 @@ pub fn open(frame: &Frame, raw_image: Option<Vec<u8>>, pixels: Option<RgbPixels>
         return Err(Error::field(
             "image",
             format!(
-                "image header says {}x{} but calibration.width/height say {}x{}",
+                "image header says {}x{} but calibration.width/height say {}x{}: not decoded",
                 size.0, size.1, c.width, c.height
             ),
         ));
