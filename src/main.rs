@@ -1,4 +1,4 @@
-//! The `posefuse` command line: serve, predict, eval, simulate, health.
+//! The `posefuse` command line: serve, predict, eval, simulate, health, waymo.
 
 mod cli;
 
@@ -31,6 +31,8 @@ enum Command {
     Simulate(SimulateArgs),
     /// Ask a running server whether it is ready (gRPC health); exit status 0 only when it is.
     Health(HealthArgs),
+    /// Waymo Open Dataset v2: simulate segments in its layout, convert a dataset (docs/WAYMO.md).
+    Waymo(cli::waymo::WaymoArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -40,5 +42,6 @@ fn main() -> anyhow::Result<()> {
         Command::Eval(a) => commands::eval(a),
         Command::Simulate(a) => commands::simulate(a),
         Command::Health(a) => commands::health(a),
+        Command::Waymo(a) => cli::waymo::run(a),
     }
 }

@@ -20,7 +20,7 @@ fn init_tracing(json: bool) {
     let _ = if json { builder.json().try_init() } else { builder.try_init() };
 }
 
-fn tokio_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+pub fn tokio_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
     Ok(tokio::runtime::Builder::new_multi_thread().enable_all().build()?)
 }
 
@@ -39,7 +39,7 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
 }
 
 /// Starts the runtime for a CLI command and waits for warm-up.
-fn cli_predictor(a: &RuntimeArgs) -> anyhow::Result<Predictor> {
+pub fn cli_predictor(a: &RuntimeArgs) -> anyhow::Result<Predictor> {
     let config = a.runtime_config();
     tracing::info!(model_dir = %a.model_dir.display(), ?config, "effective configuration");
     let runtime = Runtime::load(&a.model_dir, &config)?;
@@ -50,7 +50,7 @@ fn cli_predictor(a: &RuntimeArgs) -> anyhow::Result<Predictor> {
 }
 
 /// A deadline no CLI frame should reach; the server's is a flag.
-const CLI_FRAME_TIMEOUT: Duration = Duration::from_secs(600);
+pub const CLI_FRAME_TIMEOUT: Duration = Duration::from_secs(600);
 
 /// `posefuse predict`.
 pub fn predict(a: PredictArgs) -> anyhow::Result<()> {
