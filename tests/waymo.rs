@@ -192,7 +192,7 @@ fn missing_components_and_columns_are_named() {
     copy_dir(&sim.root.join(comp::LIDAR_BOX), &root.join(comp::LIDAR_BOX));
     // A column that is not there.
     let mut c = posefuse::waymo::table::Columns::new(false);
-    c.string(posefuse::waymo::schema::key::SEGMENT, &[seg.clone()]);
+    c.string(posefuse::waymo::schema::key::SEGMENT, std::slice::from_ref(&seg));
     c.int8(posefuse::waymo::schema::key::LASER, &[1]);
     let batch = c.finish().unwrap();
     std::fs::remove_file(root.join(comp::LIDAR_CALIBRATION).join(format!("{seg}.parquet"))).unwrap();

@@ -189,17 +189,22 @@ pub fn column_time(c: usize, w: usize) -> f64 {
     ((c as f64 + 0.5) / w as f64 - 0.5) * SWEEP_S
 }
 
+/// One laser's row of a frame: (name, return 1, return 2, TOP pixel poses).
+pub type LaserRow = (i64, RangeImage, RangeImage, Option<RangeImage>);
+/// One `camera_hkp` row: (camera, camera object id, keypoints).
+pub type CameraHkpRow = (i64, String, Vec<Kp2dLabel>);
+
 /// Everything one simulated frame writes, plus the simulator's own view of it.
 pub struct SimFrame {
     pub timestamp: i64,
     pub vehicle_pose: Mat4,
     /// Per laser: (name, return 1, return 2, TOP pixel poses).
-    pub lasers: Vec<(i64, RangeImage, RangeImage, Option<RangeImage>)>,
+    pub lasers: Vec<LaserRow>,
     pub images: Vec<(i64, Vec<u8>)>,
     pub lidar_boxes: Vec<(String, Box3d)>,
     pub camera_boxes: Vec<(i64, String, Box2d)>,
     pub associations: Vec<(i64, String, String)>,
-    pub camera_hkp: Vec<(i64, String, Vec<Kp2dLabel>)>,
+    pub camera_hkp: Vec<CameraHkpRow>,
     pub lidar_hkp: Vec<(String, Vec<Kp3dLabel>)>,
     /// Every return's true point in the vehicle frame at the frame's timestamp.
     pub points: Vec<[f32; 3]>,
@@ -219,7 +224,7 @@ fn windows(world: &World, origin: V3, slack: f64) -> Vec<Window> {
     world
         .persons
         .iter()
-        .filter_map(|p| {
+        .map(|p| {
             let b = &p.box3d;
             let c = [b.center_x, b.center_y, b.center_z];
             let r = 0.5 * (b.length * b.length + b.width * b.width + b.height * b.height).sqrt() + 0.3 + slack;
@@ -239,7 +244,7 @@ fn windows(world: &World, origin: V3, slack: f64) -> Vec<Window> {
                     ang <= half + ((q.radius + slack) / du).min(1.0).asin()
                 })
                 .collect();
-            Some(Window { dir, cos_half: half.cos(), candidates })
+            Window { dir, cos_half: half.cos(), candidates }
         })
         .collect()
 }
@@ -468,14 +473,14 @@ fn camera_keypoints<R: Rng>(
     };
     let skip_nose = rng.random_bool(0.4);
     let mut out = Vec::new();
-    for k in 0..K {
+    for (k, &kind) in KEYPOINT_TYPES.iter().enumerate() {
         if l.visible_2d[k] {
             if k == 0 && skip_nose {
                 continue;
             }
-            out.push(Kp2dLabel { kind: KEYPOINT_TYPES[k], uv: l.uv_label[k], occluded: false });
+            out.push(Kp2dLabel { kind, uv: l.uv_label[k], occluded: false });
         } else if inside(l.uv_true[k]) && rng.random_bool(0.5) {
-            out.push(Kp2dLabel { kind: KEYPOINT_TYPES[k], uv: l.uv_label[k], occluded: true });
+            out.push(Kp2dLabel { kind, uv: l.uv_label[k], occluded: true });
         }
     }
     let head = head_center(p.keypoints[0], p.heading);
@@ -560,7 +565,7 @@ fn write_frames(w: &mut SegmentWriters, frames: &[SimFrame], segment: &str, alt:
     w.get(comp::CAMERA_IMAGE)?.write(&c.finish()?)?;
     // lidar and lidar_pose
     let mut c = Columns::new(alt);
-    let rows: Vec<(i64, &(i64, RangeImage, RangeImage, Option<RangeImage>))> =
+    let rows: Vec<(i64, &LaserRow)> =
         frames.iter().flat_map(|f| f.lasers.iter().map(move |l| (f.timestamp, l))).collect();
     key_cols(&mut c, segment, rows.len());
     c.int64(key::TIMESTAMP, &rows.iter().map(|r| r.0).collect::<Vec<_>>());
@@ -631,7 +636,7 @@ fn write_frames(w: &mut SegmentWriters, frames: &[SimFrame], segment: &str, alt:
     w.get(comp::ASSOCIATION)?.write(&c.finish()?)?;
     // camera_hkp
     let mut c = Columns::new(alt);
-    let rows: Vec<(i64, &(i64, String, Vec<Kp2dLabel>))> =
+    let rows: Vec<(i64, &CameraHkpRow)> =
         frames.iter().flat_map(|f| f.camera_hkp.iter().map(move |a| (f.timestamp, a))).collect();
     key_cols(&mut c, segment, rows.len());
     c.int64(key::TIMESTAMP, &rows.iter().map(|r| r.0).collect::<Vec<_>>());
