@@ -318,3 +318,74 @@ fn eval_score_and_waymo_metrics_run_on_simulated_segments() {
     assert!(o.status.success());
     assert_eq!(std::fs::read_dir(other.path()).unwrap().count(), 0);
 }
+
+#[test]
+fn score_through_a_server_gives_the_in_process_predictions() {
+    let sim = simulated(false);
+    let root = sim.root.to_str().unwrap();
+    let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
+    let addr = format!("127.0.0.1:{port}");
+    let mut server = std::process::Command::new(env!("CARGO_BIN_EXE_posefuse"))
+        .args(["serve", "--addr", &addr])
+        .env("ORT_DYLIB_PATH", std::env::var("ORT_DYLIB_PATH").unwrap_or_else(|_| ".ort/lib/libonnxruntime.so".into()))
+        .current_dir(env!("CARGO_MANIFEST_DIR"))
+        .stderr(std::process::Stdio::null())
+        .spawn()
+        .unwrap();
+    let ready = (0..240).any(|_| {
+        std::thread::sleep(std::time::Duration::from_millis(500));
+        posefuse(&["health", "--addr", &addr]).status.success()
+    });
+    let (remote, local) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let o = ready.then(|| {
+        posefuse(&[
+            "waymo",
+            "score",
+            "--dataset",
+            root,
+            "--out",
+            remote.path().to_str().unwrap(),
+            "--server",
+            &format!("http://{addr}"),
+        ])
+    });
+    let _ = server.kill();
+    let _ = server.wait();
+    assert!(ready, "the server did not become ready");
+    let o = o.unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let o = posefuse(&["waymo", "score", "--dataset", root, "--out", local.path().to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let name = format!("{}.parquet", segment_name(5, 0));
+    let read = |d: &Path| {
+        let t = posefuse::waymo::table::read_columns(
+            &d.join(&name),
+            "predictions",
+            &[posefuse::waymo::schema::key::TIMESTAMP, posefuse::waymo::schema::key::LASER_OBJECT, col::LHKP_X],
+            None,
+        )
+        .unwrap();
+        let mut rows: Vec<(i64, String, Vec<f64>)> = t
+            .i64s(posefuse::waymo::schema::key::TIMESTAMP)
+            .unwrap()
+            .into_iter()
+            .zip(t.strings(posefuse::waymo::schema::key::LASER_OBJECT).unwrap())
+            .zip(t.f64_lists(col::LHKP_X).unwrap())
+            .map(|((a, b), c)| (a, b, c))
+            .collect();
+        rows.sort_by(|a, b| (a.0, &a.1).cmp(&(b.0, &b.1)));
+        rows
+    };
+    let (r, l) = (read(remote.path()), read(local.path()));
+    assert!(!r.is_empty());
+    assert_eq!(r.len(), l.len());
+    for (a, b) in r.iter().zip(&l) {
+        assert_eq!((a.0, &a.1), (b.0, &b.1));
+        close(
+            &a.2.iter().map(|&x| x as f32).collect::<Vec<_>>(),
+            &b.2.iter().map(|&x| x as f32).collect::<Vec<_>>(),
+            1e-4,
+            "x",
+        );
+    }
+}

@@ -5,6 +5,7 @@ use std::path::PathBuf;
 use posefuse::sim::street::Profile;
 use posefuse::waymo::convert::{convert, ConvertOptions};
 use posefuse::waymo::schema::{name_value, CAMERA_NAMES};
+use posefuse::waymo::score::{score, server_addr, Scorer};
 use posefuse::waymo::sim::WaymoSimOptions;
 
 /// Arguments of `posefuse waymo`.
@@ -43,6 +44,10 @@ pub struct WaymoScoreArgs {
     /// Frame requests predicted concurrently.
     #[arg(long, default_value_t = 4)]
     pub concurrency: usize,
+    /// Send the requests to this running server (http://host:port) instead of loading the
+    /// model in this process.
+    #[arg(long)]
+    pub server: Option<String>,
     #[command(flatten)]
     pub runtime: super::args::RuntimeArgs,
 }
@@ -202,7 +207,6 @@ pub fn run(a: WaymoArgs) -> anyhow::Result<()> {
             Ok(())
         }
         WaymoCommand::Score(a) => {
-            let predictor = super::commands::cli_predictor(&a.runtime)?;
             let o = posefuse::waymo::score::ScoreOptions {
                 dataset: a.dataset,
                 out: a.out,
@@ -210,7 +214,16 @@ pub fn run(a: WaymoArgs) -> anyhow::Result<()> {
                 concurrency: a.concurrency,
                 timeout: super::commands::CLI_FRAME_TIMEOUT,
             };
-            let sum = super::commands::tokio_runtime()?.block_on(posefuse::waymo::score::score(&predictor, &o))?;
+            let sum = match &a.server {
+                Some(url) => {
+                    let scorer = Scorer::Server(server_addr(url)?);
+                    super::commands::tokio_runtime()?.block_on(score(&scorer, &o))?
+                }
+                None => {
+                    let predictor = super::commands::cli_predictor(&a.runtime)?;
+                    super::commands::tokio_runtime()?.block_on(score(&Scorer::InProcess(&predictor), &o))?
+                }
+            };
             eprintln!(
                 "scored {} segment(s) ({} already done), {} frames, {} persons, {} failed requests in {:.1} s ({:.1} frames/s)",
                 sum.segments_scored,

@@ -3,6 +3,7 @@
 //! `lidar_hkp`'s own column layout; and Waymo's keypoint metrics of such predictions against a
 //! dataset's `lidar_hkp`.
 //!
+//! Predictions come from the in-process predictor or from a running server (`--server`).
 //! Each pedestrian is predicted once per frame: with the camera whose associated box is the
 //! largest, or from the LiDAR alone when no camera box is associated with it.
 
@@ -22,7 +23,77 @@ use crate::frame::{Box3d, Frame, Person, Points, RequestedMode};
 use crate::geometry::Camera;
 use crate::keypoints::K;
 use crate::metrics::{box_scale_3d, evaluate_person_partial, MetricsAccumulator, MetricsReport};
+use crate::service::api::PoseResponse;
 use crate::service::Predictor;
+
+/// Where predictions come from.
+pub enum Scorer<'a> {
+    /// The serving code path in this process.
+    InProcess(&'a Predictor),
+    /// A running server's `POST /v1/poses` (`host:port`).
+    Server(String),
+}
+
+impl Scorer<'_> {
+    async fn answer(&self, frame: Frame, timeout: Duration) -> anyhow::Result<PoseResponse> {
+        match self {
+            Scorer::InProcess(p) => Ok(p.answer(frame, None, timeout).await?),
+            Scorer::Server(addr) => tokio::time::timeout(timeout, post_poses(addr, &frame))
+                .await
+                .map_err(|_| anyhow::anyhow!("{addr}: timed out"))?,
+        }
+    }
+}
+
+/// `host:port` of a server URL (`http://host:port/` or `host:port`).
+pub fn server_addr(url: &str) -> anyhow::Result<String> {
+    let rest = url.strip_prefix("http://").unwrap_or(url);
+    anyhow::ensure!(!url.starts_with("https://"), "--server {url}: only plain http is supported");
+    let addr = rest.trim_end_matches('/');
+    anyhow::ensure!(!addr.is_empty() && !addr.contains('/'), "--server {url}: expected http://host:port");
+    Ok(if addr.contains(':') { addr.to_owned() } else { format!("{addr}:80") })
+}
+
+/// One `POST /v1/poses` over HTTP/1.1 (one connection per request).
+async fn post_poses(addr: &str, frame: &Frame) -> anyhow::Result<PoseResponse> {
+    use tokio::io::{AsyncReadExt, AsyncWriteExt};
+    let body = serde_json::to_vec(frame)?;
+    let mut s = tokio::net::TcpStream::connect(addr).await.with_context(|| format!("connecting to {addr}"))?;
+    let head = format!(
+        "POST /v1/poses HTTP/1.1\r\nHost: {addr}\r\nContent-Type: application/json\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+        body.len()
+    );
+    s.write_all(head.as_bytes()).await?;
+    s.write_all(&body).await?;
+    let mut buf = Vec::new();
+    s.read_to_end(&mut buf).await?;
+    let split =
+        buf.windows(4).position(|w| w == b"\r\n\r\n").ok_or_else(|| anyhow::anyhow!("{addr}: malformed response"))?;
+    let head = String::from_utf8_lossy(&buf[..split]).to_ascii_lowercase();
+    let mut body = buf[split + 4..].to_vec();
+    if head.contains("transfer-encoding: chunked") {
+        body = dechunk(&body)?;
+    }
+    let status: u16 = head.split_whitespace().nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
+    anyhow::ensure!(status == 200, "{addr}: HTTP {status}: {}", String::from_utf8_lossy(&body));
+    Ok(serde_json::from_slice(&body)?)
+}
+
+fn dechunk(mut b: &[u8]) -> anyhow::Result<Vec<u8>> {
+    let mut out = Vec::new();
+    loop {
+        let eol = b.windows(2).position(|w| w == b"\r\n").ok_or_else(|| anyhow::anyhow!("bad chunked body"))?;
+        let size_text = String::from_utf8_lossy(&b[..eol]);
+        let size = usize::from_str_radix(size_text.split(';').next().unwrap_or("").trim(), 16)?;
+        b = &b[eol + 2..];
+        if size == 0 {
+            return Ok(out);
+        }
+        anyhow::ensure!(b.len() >= size + 2, "truncated chunked body");
+        out.extend_from_slice(&b[..size]);
+        b = &b[size + 2..];
+    }
+}
 
 /// What to score.
 #[derive(Debug, Clone)]
@@ -105,9 +176,9 @@ pub fn shard_segments(all: Vec<String>, (i, k): (usize, usize)) -> Vec<String> {
     all.into_iter().enumerate().filter(|(n, _)| k == 0 || n % k == i).map(|(_, s)| s).collect()
 }
 
-/// Runs `posefuse waymo score` with an in-process predictor. A segment whose predictions file
+/// Runs `posefuse waymo score`. A segment whose predictions file
 /// exists is skipped (rerun to resume); files appear only when complete.
-pub async fn score(predictor: &Predictor, o: &ScoreOptions) -> anyhow::Result<ScoreSummary> {
+pub async fn score(scorer: &Scorer<'_>, o: &ScoreOptions) -> anyhow::Result<ScoreSummary> {
     let started = std::time::Instant::now();
     anyhow::ensure!(o.shard.1 > 0 && o.shard.0 < o.shard.1, "--shard i/k needs 0 ≤ i < k");
     let names = shard_segments(super::sim::segments_in(&o.dataset)?, o.shard);
@@ -138,7 +209,7 @@ pub async fn score(predictor: &Predictor, o: &ScoreOptions) -> anyhow::Result<Sc
             let f = seg.frame(ts, &wanted)?;
             let requests = scoring_requests(&seg, &cameras, &f, &labels)?;
             let answers: Vec<_> = futures::stream::iter(requests)
-                .map(|r| predictor.answer(r, None, o.timeout))
+                .map(|r| scorer.answer(r, o.timeout))
                 .buffer_unordered(o.concurrency.max(1))
                 .collect()
                 .await;
