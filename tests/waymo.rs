@@ -389,3 +389,21 @@ fn score_through_a_server_gives_the_in_process_predictions() {
         );
     }
 }
+
+#[test]
+fn without_camera_keypoints_only_requests() {
+    let sim = simulated(false);
+    let root = tempfile::tempdir().unwrap().keep();
+    copy_dir(&sim.root, &root);
+    std::fs::remove_dir_all(root.join(comp::CAMERA_HKP)).unwrap();
+    std::fs::remove_dir_all(root.join(comp::LIDAR_POSE)).unwrap();
+    let (out, sum) = convert_to(&root, 64);
+    assert_eq!(sum.samples, 0, "no 2D labels, no training samples");
+    assert!(sum.fixtures >= FRAMES);
+    let f: posefuse::frame::Frame = serde_json::from_slice(
+        &std::fs::read(std::fs::read_dir(out.join("requests")).unwrap().next().unwrap().unwrap().path()).unwrap(),
+    )
+    .unwrap();
+    let gt = f.persons[0].ground_truth.as_ref().unwrap();
+    assert!(gt.keypoints_3d.is_some() && gt.keypoints_2d.is_none());
+}
