@@ -172,6 +172,7 @@ fn sparse_unordered_keypoints_as_real_labels() {
         }
     }
     assert!(with_extra > 0, "FOREHEAD / HEAD_CENTER are present");
+    assert!(lengths.len() > 1, "keypoint lists vary in length: {lengths:?}");
     assert!(seg.has_lidar_hkp && seg.has_camera_hkp);
 }
 
