@@ -487,3 +487,46 @@ impl ComponentWriter {
         Ok(())
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn reads_every_codec_and_names_what_is_missing() {
+        let dir = tempfile::tempdir().unwrap();
+        for (i, codec) in [
+            Compression::UNCOMPRESSED,
+            Compression::SNAPPY,
+            Compression::ZSTD(Default::default()),
+            Compression::GZIP(Default::default()),
+            Compression::LZ4_RAW,
+        ]
+        .into_iter()
+        .enumerate()
+        {
+            let mut c = Columns::new(i % 2 == 1);
+            c.enum8("key.camera_name", &[1, 5], &super::super::schema::CAMERA_NAMES);
+            c.list_i8("types", &[vec![1, 19], vec![]]);
+            c.double("x", &[0.5, -2.0]);
+            let batch = c.finish().unwrap();
+            let path = dir.path().join(format!("{i}.parquet"));
+            let props = WriterProperties::builder().set_compression(codec).build();
+            let mut w = ArrowWriter::try_new(File::create(&path).unwrap(), batch.schema(), Some(props)).unwrap();
+            w.write(&batch).unwrap();
+            w.close().unwrap();
+            let t = read_columns(&path, "camera_box", &["key.camera_name", "types", "x"], None).unwrap();
+            assert_eq!(
+                t.enums("key.camera_name", &super::super::schema::CAMERA_NAMES).unwrap(),
+                vec![1, 5],
+                "{codec:?}"
+            );
+            assert_eq!(t.i64_lists("types").unwrap(), vec![vec![1, 19], vec![]]);
+            assert_eq!(t.f64s("x").unwrap(), vec![0.5, -2.0]);
+            let err = read_columns(&path, "camera_box", &["y"], None).err().unwrap().to_string();
+            assert!(err.contains("camera_box") && err.contains("`y`"), "{err}");
+            let err = t.strings("x").err().unwrap().to_string();
+            assert!(err.contains("`x`") && err.contains("not a string"), "{err}");
+        }
+    }
+}
