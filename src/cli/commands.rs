@@ -11,7 +11,7 @@ use tonic_health::pb::health_check_response::ServingStatus;
 
 use super::args::{EvalArgs, HealthArgs, PredictArgs, RuntimeArgs, ServeArgs, SimulateArgs};
 
-fn init_tracing(json: bool) {
+pub fn init_tracing(json: bool) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,ort=warn"));
     // Colour codes only for a person at a terminal, not in a container's or a collector's log.

@@ -207,6 +207,7 @@ pub fn run(a: WaymoArgs) -> anyhow::Result<()> {
             Ok(())
         }
         WaymoCommand::Score(a) => {
+            super::commands::init_tracing(false);
             let o = posefuse::waymo::score::ScoreOptions {
                 dataset: a.dataset,
                 out: a.out,

@@ -362,7 +362,6 @@ pub fn simulate_frame(
             scan_laser(&world, l, &frame_pose, o.speed_mps, &mut rng, &mut points, &mut hits, &mut top_truth);
         lasers.push((l.name, a, b, p));
     }
-    let segment = segment_name(o.seed, seg);
     let mut f = SimFrame {
         timestamp: 1_600_000_000_000_000 + index as i64 * FRAME_US,
         vehicle_pose: frame_pose,
@@ -450,7 +449,6 @@ pub fn simulate_frame(
         }
         samples.push(person_sample(&image, cam, &points, sensor, &labels, cfg, 1024, index as i32));
     }
-    let _ = segment;
     f.points = points;
     Ok((f, samples))
 }
