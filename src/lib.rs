@@ -18,5 +18,6 @@ pub mod runtime;
 pub mod server;
 pub mod service;
 pub mod sim;
+pub mod waymo;
 
 pub use error::{Error, Result};

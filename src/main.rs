@@ -1,4 +1,4 @@
-//! The `posefuse` command line: serve, predict, eval, simulate, health.
+//! The `posefuse` command line: serve, predict, eval, simulate, health, waymo.
 
 mod cli;
 
@@ -33,6 +33,8 @@ enum Command {
     Health(HealthArgs),
     /// Load a server with request fixtures at several concurrencies, beside raw ONNX Runtime.
     Bench(BenchArgs),
+    /// Waymo Open Dataset v2: simulate segments in its layout, convert a dataset (docs/WAYMO.md).
+    Waymo(cli::waymo::WaymoArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -43,5 +45,6 @@ fn main() -> anyhow::Result<()> {
         Command::Simulate(a) => commands::simulate(a),
         Command::Health(a) => commands::health(a),
         Command::Bench(a) => posefuse::loadbench::run_bench(a.into()),
+        Command::Waymo(a) => cli::waymo::run(a),
     }
 }

@@ -12,7 +12,7 @@ use tonic_health::pb::health_check_response::ServingStatus;
 
 use super::args::{EvalArgs, HealthArgs, PredictArgs, RuntimeArgs, ServeArgs, SimulateArgs};
 
-fn init_tracing(json: bool) {
+pub fn init_tracing(json: bool) {
     let filter = tracing_subscriber::EnvFilter::try_from_default_env()
         .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,ort=warn"));
     // Colour codes only for a person at a terminal, not in a container's or a collector's log.
@@ -21,7 +21,7 @@ fn init_tracing(json: bool) {
     let _ = if json { builder.json().try_init() } else { builder.try_init() };
 }
 
-fn tokio_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
+pub fn tokio_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
     Ok(tokio::runtime::Builder::new_multi_thread().enable_all().build()?)
 }
 
@@ -35,7 +35,7 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
 }
 
 /// Starts the runtime for a CLI command and waits for warm-up.
-fn cli_predictor(a: &RuntimeArgs) -> anyhow::Result<Predictor> {
+pub fn cli_predictor(a: &RuntimeArgs) -> anyhow::Result<Predictor> {
     let config = a.runtime_config();
     tracing::info!(model_dir = %a.model_dir.display(), ?config, "effective configuration");
     let runtime = Runtime::load(&a.model_dir, &config)?;
@@ -46,7 +46,7 @@ fn cli_predictor(a: &RuntimeArgs) -> anyhow::Result<Predictor> {
 }
 
 /// A deadline no CLI frame should reach; the server's is a flag.
-const CLI_FRAME_TIMEOUT: Duration = Duration::from_secs(600);
+pub const CLI_FRAME_TIMEOUT: Duration = Duration::from_secs(600);
 
 /// `posefuse predict`.
 pub fn predict(a: PredictArgs) -> anyhow::Result<()> {

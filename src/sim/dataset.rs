@@ -91,7 +91,7 @@ pub fn frame_rng(seed: u64, index: usize) -> ChaCha8Rng {
     ChaCha8Rng::seed_from_u64(hash(&[seed, index as u64]))
 }
 
-fn persons_in_frame<R: Rng>(rng: &mut R) -> usize {
+pub fn persons_in_frame<R: Rng>(rng: &mut R) -> usize {
     match rng.random_range(0..100) {
         0..=39 => 1,
         40..=74 => 2,
