@@ -140,7 +140,10 @@ class KeepAlive:
             if self.conn is None:
                 self.conn = await asyncio.open_connection(HOST, self.port)
             reader, writer = self.conn
-            head = f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n"
+            head = (
+                f"POST {path} HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+                f"Content-Length: {len(body)}\r\n\r\n"
+            )
             try:
                 # The answer may come before the body is read (429 at admission): wait for it,
                 # not for the body to be sent.
@@ -208,7 +211,8 @@ async def drain_check(a: argparse.Namespace) -> dict:
     frame = (a.frames and load_frames(a.frames, 1)[0]) or None
     reader, writer = await asyncio.open_connection(HOST, port)
     writer.write(
-        b"POST /v1/poses:batch HTTP/1.1\r\nHost: x\r\nContent-Type: application/x-ndjson\r\nTransfer-Encoding: chunked\r\n\r\n"
+        b"POST /v1/poses:batch HTTP/1.1\r\nHost: x\r\nContent-Type: application/x-ndjson\r\n"
+        b"Transfer-Encoding: chunked\r\n\r\n"
     )
     line = (frame or b'{"bad": 1}') + b"\n"
     writer.write(f"{len(line):x}\r\n".encode() + line + b"\r\n")
@@ -410,7 +414,10 @@ async def cancel_check(a: argparse.Namespace) -> dict:
     out["full_frame_cpu_s"] = round(server.cpu_seconds() - c_start, 2)
     _, w = await asyncio.open_connection(HOST, server.port)
     w.write(
-        f"POST /v1/poses HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {len(body)}\r\n\r\n".encode()
+        (
+            f"POST /v1/poses HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\n"
+            f"Content-Length: {len(body)}\r\n\r\n"
+        ).encode()
         + body
     )
     await w.drain()
