@@ -124,46 +124,10 @@ fn prepare(frame: &Frame, form: ImageForm) -> anyhow::Result<Prepared> {
         }
     };
     f.image = (!image.is_empty()).then(|| b64(&image));
-    f.image_rgb = pixels.clone();
+    f.image_rgb = pixels;
     let http_body = serde_json::to_vec(&f)?;
-    let points: Vec<u8> = f.points.decode()?.iter().flatten().flat_map(|v| v.to_le_bytes()).collect();
-    let grpc = proto::PredictRequest {
-        frame_id: f.frame_id.clone().unwrap_or_default(),
-        image,
-        calibration: Some(proto::Calibration {
-            intrinsic: f.calibration.intrinsic.clone(),
-            extrinsic: f.calibration.extrinsic.clone(),
-            width: f.calibration.width,
-            height: f.calibration.height,
-        }),
-        points,
-        persons: f
-            .persons
-            .iter()
-            .map(|p| proto::Person {
-                id: p.id.clone(),
-                box_2d: p.box_2d.map(|b| proto::Box2d {
-                    center_x: b.center_x,
-                    center_y: b.center_y,
-                    width: b.width,
-                    height: b.height,
-                }),
-                box_3d: Some(proto::Box3d {
-                    center_x: p.box_3d.center_x,
-                    center_y: p.box_3d.center_y,
-                    center_z: p.box_3d.center_z,
-                    length: p.box_3d.length,
-                    width: p.box_3d.width,
-                    height: p.box_3d.height,
-                    heading: p.box_3d.heading,
-                }),
-            })
-            .collect(),
-        mode: proto::Mode::Auto as i32,
-        image_rgb_width: pixels.as_ref().map_or(0, |p| p.width),
-        image_rgb_height: pixels.as_ref().map_or(0, |p| p.height),
-        image_rgb: pixels.map(|p| p.pixels).unwrap_or_default(),
-    };
+    // the image as file bytes (the pixels travel in `f.image_rgb`)
+    let grpc = crate::server::grpc::frame_to_proto(&f, image)?;
     Ok(Prepared { http_body, grpc, persons: f.persons.len() })
 }
 

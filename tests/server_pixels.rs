@@ -4,6 +4,8 @@
 mod server_support;
 
 use base64::Engine;
+use posefuse::frame::RgbPixels;
+use posefuse::server::grpc::frame_to_proto;
 use posefuse::server::grpc::proto;
 use posefuse::server::grpc::proto::posefuse_client::PosefuseClient;
 use serde_json::{json, Value};
@@ -53,40 +55,10 @@ async fn raw_pixels_answer_like_the_png_of_the_same_pixels() {
     assert_eq!(xyz(&raw_answer), xyz(&png_answer));
 
     // gRPC: the bytes themselves
-    let f = fusion_frame();
-    let pts = f.points.decode().unwrap();
-    let p = &f.persons[0];
-    let request = proto::PredictRequest {
-        calibration: Some(proto::Calibration {
-            intrinsic: f.calibration.intrinsic.clone(),
-            extrinsic: f.calibration.extrinsic.clone(),
-            width: f.calibration.width,
-            height: f.calibration.height,
-        }),
-        points: pts.iter().flatten().flat_map(|v| v.to_le_bytes()).collect(),
-        persons: vec![proto::Person {
-            id: p.id.clone(),
-            box_2d: p.box_2d.map(|b| proto::Box2d {
-                center_x: b.center_x,
-                center_y: b.center_y,
-                width: b.width,
-                height: b.height,
-            }),
-            box_3d: Some(proto::Box3d {
-                center_x: p.box_3d.center_x,
-                center_y: p.box_3d.center_y,
-                center_z: p.box_3d.center_z,
-                length: p.box_3d.length,
-                width: p.box_3d.width,
-                height: p.box_3d.height,
-                heading: p.box_3d.heading,
-            }),
-        }],
-        image_rgb: bytes.clone(),
-        image_rgb_width: w,
-        image_rgb_height: h,
-        ..Default::default()
-    };
+    let mut f = fusion_frame();
+    f.image = None;
+    f.image_rgb = Some(RgbPixels { width: w, height: h, pixels: bytes.clone() });
+    let request = frame_to_proto(&f, Vec::new()).unwrap();
     let mut c = PosefuseClient::connect(s.url("")).await.unwrap();
     let r = c.predict(request.clone()).await.unwrap().into_inner();
     assert_eq!(r.persons[0].mode, proto::Mode::Fusion as i32);
