@@ -4,7 +4,7 @@
 use crate::error::{Error, Result};
 use crate::frame::CameraCalibration;
 
-type Mat4 = [[f64; 4]; 4];
+use super::rigid::{apply, rigid_inverse, Mat4};
 
 /// A validated camera: intrinsics, distortion and both rigid transforms.
 #[derive(Debug, Clone, PartialEq)]
@@ -32,27 +32,6 @@ pub struct Projection {
     pub in_front: bool,
     /// The point is in front of the camera and inside the image.
     pub in_image: bool,
-}
-
-fn apply(m: &Mat4, p: [f64; 3]) -> [f64; 3] {
-    let mut out = [0.0; 3];
-    for (r, o) in out.iter_mut().enumerate() {
-        *o = m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3];
-    }
-    out
-}
-
-/// Inverse of a rigid transform: `[R^T | -R^T t]`.
-fn rigid_inverse(m: &Mat4) -> Mat4 {
-    let mut inv = [[0.0; 4]; 4];
-    for r in 0..3 {
-        for c in 0..3 {
-            inv[r][c] = m[c][r];
-        }
-        inv[r][3] = -(0..3).map(|c| m[c][r] * m[c][3]).sum::<f64>();
-    }
-    inv[3][3] = 1.0;
-    inv
 }
 
 impl Camera {

@@ -3,6 +3,7 @@
 mod boxes;
 mod camera;
 mod image_boxes;
+pub mod rigid;
 
 pub use boxes::{box2d_contains, box2d_from_points, BoxFrame};
 pub use camera::{Camera, Projection};

@@ -281,6 +281,41 @@ pub fn simulate_frame(
     Ok(out)
 }
 
+/// A sample's point fields: at most `points_cap` in-box points (box frame, model pixels), chosen
+/// as the server chooses, and the exact serving input (zeros when the box holds no point).
+pub struct SamplePoints {
+    pub points_xyz: Vec<[f32; 3]>,
+    pub points_uv: Vec<[f32; 2]>,
+    pub serve_xyz: Vec<[f32; 3]>,
+    pub serve_uv: Vec<[f32; 2]>,
+}
+
+/// The point fields of a prepared person; `points_uv` are its in-box points in model pixels.
+pub fn sample_points(
+    prepared: &crate::pipeline::PreparedPerson,
+    points_uv: &[[f32; 2]],
+    cfg: &PipelineConfig,
+    points_cap: usize,
+) -> SamplePoints {
+    let pts = &prepared.points;
+    let keep: Vec<usize> = if pts.len() > points_cap {
+        select_indices(pts.len(), points_cap, input_seed(&pts.vehicle))
+    } else {
+        (0..pts.len()).collect()
+    };
+    let n = cfg.num_points as usize;
+    let (serve_xyz, serve_uv) = match &prepared.input {
+        Some(inp) => (inp.xyz.clone(), inp.uv.clone()),
+        None => (vec![[0.0; 3]; n], vec![[0.0; 2]; n]),
+    };
+    SamplePoints {
+        points_xyz: keep.iter().map(|&i| pts.local[i]).collect(),
+        points_uv: keep.iter().map(|&i| points_uv[i]).collect(),
+        serve_xyz,
+        serve_uv,
+    }
+}
+
 #[allow(clippy::too_many_arguments)]
 fn make_sample(
     world: &World,
@@ -296,21 +331,13 @@ fn make_sample(
     calib: &crate::frame::CameraCalibration,
 ) -> Sample {
     let bf = &prepared.box_frame;
-    let pts = &prepared.points;
-    let keep: Vec<usize> = if pts.len() > points_cap {
-        select_indices(pts.len(), points_cap, input_seed(&pts.vehicle))
-    } else {
-        (0..pts.len()).collect()
-    };
-    let (serve_xyz, serve_uv) = match &prepared.input {
-        Some(inp) => (inp.xyz.clone(), inp.uv.clone()),
-        None => (vec![[0.0; 3]; cfg.num_points as usize], vec![[0.0; 2]; cfg.num_points as usize]),
-    };
+    let SamplePoints { points_xyz, points_uv, serve_xyz, serve_uv } =
+        sample_points(prepared, points_uv, cfg, points_cap);
     let b = &p.box3d;
     Sample {
         image: crop.into_raw(),
-        points_xyz: keep.iter().map(|&i| pts.local[i]).collect(),
-        points_uv: keep.iter().map(|&i| points_uv[i]).collect(),
+        points_xyz,
+        points_uv,
         serve_xyz,
         serve_uv,
         kp2d: labels.uv_label.map(|u| f32x(t.to_model(u))),

@@ -17,8 +17,8 @@ use super::schema::{keypoint_index, LASER_TOP};
 use crate::frame::{Box2d, Box3d, Frame, GroundTruth, Keypoints2d, Keypoints3d, Person, Points, RequestedMode};
 use crate::geometry::{BoxFrame, Camera};
 use crate::keypoints::K;
-use crate::pipeline::{input_seed, prepare_person, select_indices, to_local, CropTransform, PipelineConfig};
-use crate::sim::dataset::{decode_jpeg, Sample, ShardWriter};
+use crate::pipeline::{prepare_person, to_local, CropTransform, PipelineConfig};
+use crate::sim::dataset::{decode_jpeg, sample_points, Sample, SamplePoints, ShardWriter};
 use crate::sim::world::LIDAR_ORIGIN;
 
 /// Version written to the output's `dataset.json`.
@@ -109,24 +109,15 @@ pub fn person_sample(
     let crop = prepared.crop_rgb.clone().unwrap_or_else(|| crate::pipeline::crop_rgb(image, &t));
     let points_uv = prepared.points.model_uv(Some(cam), Some(&t));
     let bf = &prepared.box_frame;
-    let pts = &prepared.points;
-    let keep: Vec<usize> = if pts.len() > points_cap {
-        select_indices(pts.len(), points_cap, input_seed(&pts.vehicle))
-    } else {
-        (0..pts.len()).collect()
-    };
-    let n = cfg.num_points as usize;
-    let (serve_xyz, serve_uv) = match &prepared.input {
-        Some(inp) => (inp.xyz.clone(), inp.uv.clone()),
-        None => (vec![[0.0; 3]; n], vec![[0.0; 2]; n]),
-    };
+    let SamplePoints { points_xyz, points_uv, serve_xyz, serve_uv } =
+        sample_points(&prepared, &points_uv, cfg, points_cap);
     let b = &l.box3d;
     let calib = cam.to_calibration();
     let v = [b.center_x - sensor[0], b.center_y - sensor[1]];
     Sample {
         image: crop.into_raw(),
-        points_xyz: keep.iter().map(|&i| pts.local[i]).collect(),
-        points_uv: keep.iter().map(|&i| points_uv[i]).collect(),
+        points_xyz,
+        points_uv,
         serve_xyz,
         serve_uv,
         kp2d: l.kp2d.map(|u| u.map_or([0.0; 2], |u| f32x(t.to_model(u)))),

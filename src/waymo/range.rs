@@ -7,8 +7,7 @@
 
 use anyhow::ensure;
 
-/// A row-major 4×4 transform.
-pub type Mat4 = [[f64; 4]; 4];
+pub use crate::geometry::rigid::{apply, mat4, mul, rigid_inverse, Mat4};
 
 /// `shape` = [H, W, C] and H·W·C values (channel 0 is the range for LiDAR returns).
 #[derive(Debug, Clone, PartialEq)]
@@ -79,31 +78,6 @@ pub fn column_azimuths(extrinsic: &[f64; 16], width: usize) -> Vec<f64> {
         .map(|c| ((width - c) as f64 - 0.5) / width as f64)
         .map(|ratio| (ratio * 2.0 - 1.0) * std::f64::consts::PI - yaw)
         .collect()
-}
-
-pub fn mat4(v: &[f64; 16]) -> Mat4 {
-    std::array::from_fn(|r| std::array::from_fn(|c| v[r * 4 + c]))
-}
-
-pub fn mul(a: &Mat4, b: &Mat4) -> Mat4 {
-    std::array::from_fn(|r| std::array::from_fn(|c| (0..4).map(|k| a[r][k] * b[k][c]).sum()))
-}
-
-pub fn apply(m: &Mat4, p: [f64; 3]) -> [f64; 3] {
-    std::array::from_fn(|r| m[r][0] * p[0] + m[r][1] * p[1] + m[r][2] * p[2] + m[r][3])
-}
-
-/// Inverse of a rigid transform.
-pub fn rigid_inverse(m: &Mat4) -> Mat4 {
-    let mut inv = [[0.0; 4]; 4];
-    for r in 0..3 {
-        for c in 0..3 {
-            inv[r][c] = m[c][r];
-        }
-        inv[r][3] = -(0..3).map(|c| m[c][r] * m[c][3]).sum::<f64>();
-    }
-    inv[3][3] = 1.0;
-    inv
 }
 
 /// The transform of a pose (roll, pitch, yaw, x, y, z): `R = Rz(yaw)·Ry(pitch)·Rx(roll)`.
