@@ -429,6 +429,7 @@ fn plan_frame(
         match decoded {
             Ok(img) => {
                 for (p, t) in persons.iter_mut().zip(&crops) {
+                    still_wanted(abandoned)?;
                     p.image_input = t.map(|t| normalize(&img.crop(&t), cfg));
                 }
             }
