@@ -262,10 +262,13 @@ async fn evaluate(
     State(state): State<AppState>,
     ApiJson(values): ApiJson<Vec<Box<serde_json::value::RawValue>>>,
 ) -> Result<Json<EvaluateResponse>> {
-    let frames = futures::future::join_all(
-        values.into_iter().map(|v| parse_json_off_executor::<Frame>(Bytes::from(v.get().to_owned()))),
-    )
-    .await;
+    // Parsed as many at a time as frames are predicted, so a large body cannot hold a blocking
+    // thread per item.
+    let frames: Vec<Result<Frame>> = futures::stream::iter(values)
+        .map(|v| parse_json_off_executor::<Frame>(Bytes::from(v.get().to_owned())))
+        .buffered(state.batch_concurrency)
+        .collect()
+        .await;
     crate::eval::evaluate_frames(&state.predictor, frames, state.batch_concurrency, state.request_timeout)
         .await
         .map(Json)
