@@ -6,8 +6,7 @@ use clap::{Parser, Subcommand};
 use cli::args::{BenchArgs, EvalArgs, HealthArgs, PredictArgs, ServeArgs, SimulateArgs};
 use cli::commands;
 
-// Requests allocate crops and tensors of a few hundred KB; the system allocator maps and unmaps
-// them each time (a page fault per 4 KB), mimalloc keeps them for reuse.
+// Why mimalloc, and how the server tunes it: cli/allocator.rs.
 #[global_allocator]
 static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 

@@ -28,6 +28,7 @@ pub fn tokio_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
 /// `posefuse serve`: SIGHUP reloads the bundle, SIGTERM or Ctrl-C drains; a completed drain
 /// exits 0.
 pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
+    super::allocator::purge_freed_memory_at_once();
     init_tracing(a.log_json);
     let config = a.server_config();
     tracing::info!(addr = %a.addr, ?config, "effective configuration");

@@ -1,5 +1,6 @@
 //! The `posefuse` command line: its flags ([`args`]) and what each subcommand runs ([`commands`]).
 
+pub mod allocator;
 pub mod args;
 pub mod commands;
 pub mod waymo;
