@@ -1,10 +1,14 @@
 //! Diagnostics beside Waymo's metrics: how often the body's facing was read the wrong way round
-//! (left and right exchanged) and how far the predicted facing is from the true one.
+//! (left and right exchanged) and how far the predicted facing is from the true one, overall and by
+//! how the person stands to the sensor (front, side or back turned to it), since a LiDAR sees the
+//! same silhouette from the front and the back and only the camera tells them apart.
+
+use std::collections::BTreeMap;
 
 use serde::{Deserialize, Serialize};
 
 use crate::keypoints::FLIP;
-use crate::pipeline::{facing, yaw_difference};
+use crate::pipeline::{facing, yaw_difference, NOMINAL_LIDAR_ORIGIN};
 
 /// Persons with fewer keypoints visible together with their mirror are not judged for a swap.
 pub const MIN_VISIBLE_PAIRS: usize = 4;
@@ -26,11 +30,37 @@ pub fn left_right_swapped(pred: &[[f64; 3]], gt: &[[f64; 3]], visible: &[bool]) 
     (n >= MIN_VISIBLE_PAIRS).then_some(mirrored < direct)
 }
 
+/// How a person stands to the sensor, from the true facing: `front` within 45° of facing it,
+/// `back` within 45° of facing away, `side` otherwise.
+pub fn view_of(gt: &[[f64; 3]], sensor: [f64; 3]) -> Option<&'static str> {
+    let f = facing(gt)?;
+    let hips = [gt.get(7)?, gt.get(8)?];
+    let to_sensor = (sensor[1] - (hips[0][1] + hips[1][1]) / 2.0).atan2(sensor[0] - (hips[0][0] + hips[1][0]) / 2.0);
+    let off = yaw_difference(f.yaw, to_sensor).to_degrees();
+    Some(if off <= 45.0 {
+        "front"
+    } else if off >= 135.0 {
+        "back"
+    } else {
+        "side"
+    })
+}
+
 /// Swap and facing diagnostics of a set of persons.
 #[derive(Debug, Clone, Default)]
 pub struct Diagnostics {
     swaps: Vec<bool>,
     facing_errors_deg: Vec<f64>,
+    swaps_by_view: BTreeMap<&'static str, Vec<bool>>,
+}
+
+/// Left/right swaps of the persons standing one way to the sensor.
+#[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
+pub struct ViewSwaps {
+    /// Persons judged.
+    pub judged: usize,
+    /// Share of them predicted with left and right exchanged.
+    pub swap_rate: f64,
 }
 
 /// What [`Diagnostics`] report.
@@ -44,6 +74,9 @@ pub struct DiagnosticsReport {
     pub facing_judged: usize,
     /// Median angle between predicted and true facing, degrees.
     pub facing_error_median_deg: Option<f64>,
+    /// Swaps by how the person stands to the sensor (`front`, `side`, `back`; see [`view_of`]).
+    #[serde(default)]
+    pub swaps_by_view: BTreeMap<String, ViewSwaps>,
 }
 
 impl Diagnostics {
@@ -51,6 +84,9 @@ impl Diagnostics {
     pub fn add(&mut self, pred: &[[f64; 3]], gt: &[[f64; 3]], visible: &[bool]) {
         if let Some(s) = left_right_swapped(pred, gt, visible) {
             self.swaps.push(s);
+            if let Some(view) = view_of(gt, NOMINAL_LIDAR_ORIGIN) {
+                self.swaps_by_view.entry(view).or_default().push(s);
+            }
         }
         let shoulders_and_hips_visible = [1, 2, 7, 8].iter().all(|&k| visible.get(k).copied().unwrap_or(false));
         if let (true, Some(p), Some(t)) = (shoulders_and_hips_visible, facing(pred), facing(gt)) {
@@ -62,6 +98,9 @@ impl Diagnostics {
     pub fn merge(&mut self, other: &Diagnostics) {
         self.swaps.extend_from_slice(&other.swaps);
         self.facing_errors_deg.extend_from_slice(&other.facing_errors_deg);
+        for (view, s) in &other.swaps_by_view {
+            self.swaps_by_view.entry(view).or_default().extend_from_slice(s);
+        }
     }
 
     /// The report.
@@ -73,6 +112,14 @@ impl Diagnostics {
             left_right_swap_rate: rate,
             facing_judged: self.facing_errors_deg.len(),
             facing_error_median_deg: median(&self.facing_errors_deg),
+            swaps_by_view: self
+                .swaps_by_view
+                .iter()
+                .map(|(view, s)| {
+                    let swap_rate = s.iter().filter(|s| **s).count() as f64 / s.len() as f64;
+                    (view.to_string(), ViewSwaps { judged: s.len(), swap_rate })
+                })
+                .collect(),
         }
     }
 }
@@ -148,6 +195,33 @@ mod tests {
         d.add(&gt, &gt, &visible);
         let r = d.report();
         assert_eq!((r.swap_judged, r.facing_judged, r.facing_error_median_deg), (1, 0, None));
+    }
+
+    #[test]
+    fn swaps_are_counted_by_how_the_person_stands_to_the_sensor() {
+        let sensor = NOMINAL_LIDAR_ORIGIN;
+        let at = |kp: Vec<[f64; 3]>, x: f64, y: f64| -> Vec<[f64; 3]> {
+            kp.into_iter().map(|p| [p[0] + x, p[1] + y, p[2]]).collect()
+        };
+        // the body faces +x: seen from a sensor ahead of it, it shows its front; behind it, its back
+        let front = at(body(), -8.0, 0.0);
+        let back = at(body(), 12.0, 0.0);
+        let side = at(body(), sensor[0], 10.0);
+        assert_eq!(view_of(&front, sensor), Some("front"));
+        assert_eq!(view_of(&back, sensor), Some("back"));
+        assert_eq!(view_of(&side, sensor), Some("side"));
+        let visible = vec![true; 13];
+        let mut d = Diagnostics::default();
+        d.add(&mirrored(&back), &back, &visible);
+        d.add(&back, &back, &visible);
+        d.add(&front, &front, &visible);
+        let mut more = Diagnostics::default();
+        more.add(&mirrored(&side), &side, &visible);
+        d.merge(&more);
+        let r = d.report().swaps_by_view;
+        assert_eq!(r["back"], ViewSwaps { judged: 2, swap_rate: 0.5 });
+        assert_eq!(r["front"], ViewSwaps { judged: 1, swap_rate: 0.0 });
+        assert_eq!(r["side"], ViewSwaps { judged: 1, swap_rate: 1.0 });
     }
 
     #[test]

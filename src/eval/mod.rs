@@ -22,7 +22,7 @@ use crate::service::Predictor;
 mod diagnostics;
 mod heading_noise;
 
-pub use diagnostics::{left_right_swapped, Diagnostics, DiagnosticsReport};
+pub use diagnostics::{left_right_swapped, view_of, Diagnostics, DiagnosticsReport, ViewSwaps};
 pub use heading_noise::{perturb_headings, HeadingNoise};
 
 /// Predictions and metrics over frames with ground truth.
@@ -158,10 +158,16 @@ impl EvalReport {
             if let Some(d) = self.diagnostics.get(name) {
                 let pct = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{:.1} %", 100.0 * v));
                 let deg = |v: Option<f64>| v.map_or_else(|| "-".to_string(), |v| format!("{v:.1}°"));
+                let by_view: Vec<String> = d
+                    .swaps_by_view
+                    .iter()
+                    .map(|(view, v)| format!("{view} {} of {}", pct(Some(v.swap_rate)), v.judged))
+                    .collect();
                 out.push_str(&format!(
-                    "left/right swapped {} of {} · facing error median {} of {}\n",
+                    "left/right swapped {} of {} ({}) · facing error median {} of {}\n",
                     pct(d.left_right_swap_rate),
                     d.swap_judged,
+                    by_view.join(", "),
                     deg(d.facing_error_median_deg),
                     d.facing_judged
                 ));
