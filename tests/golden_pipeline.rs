@@ -9,7 +9,8 @@ use std::path::PathBuf;
 use posefuse::frame::Box3d;
 use posefuse::geometry::BoxFrame;
 use posefuse::pipeline::{
-    gaussian_kernel, lift, reliability, sample_features, smooth_heatmaps, to_local, PipelineConfig,
+    gaussian_kernel, lift, model_frame, reliability, sample_features, smooth_heatmaps, to_local, PipelineConfig,
+    PointFrame,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -95,10 +96,17 @@ fn point_normalization() {
     let vehicle: Vec<[f64; 3]> = (0..8)
         .map(|_| [12.0 + rng.random_range(-0.5..0.5), -3.0 + rng.random_range(-0.5..0.5), rng.random_range(0.0..1.7)])
         .collect();
-    let local: Vec<[f64; 3]> = vehicle.iter().map(|p| to_local(&frame, *p, &cfg)).collect();
+    let in_frame = |cfg: &PipelineConfig| {
+        let local: Vec<[f64; 3]> = vehicle.iter().map(|p| to_local(&frame, *p, cfg)).collect();
+        json!({"local": local, "frame_yaw": model_frame(&frame, cfg).heading})
+    };
+    let view = cfg.clone().in_frame(PointFrame::View);
     check(
         "points.json",
-        json!({"box3d": b, "rotate_by_heading": cfg.rotate_by_heading, "vehicle": vehicle, "local": local}),
+        json!({
+            "box3d": b, "vehicle": vehicle, "view_origin": view.view_origin,
+            "box_heading": in_frame(&cfg), "view": in_frame(&view),
+        }),
     );
 }
 

@@ -10,6 +10,7 @@ use ndarray::ArrayD;
 use ndarray_npy::NpzReader;
 use posefuse::frame::{Box3d, CameraCalibration, Frame};
 use posefuse::geometry::{BoxFrame, Camera};
+use posefuse::pipeline::PointFrame;
 use posefuse::pipeline::{from_local, prepare_person, CropTransform, PipelineConfig};
 use posefuse::sim::street::Profile;
 use posefuse::sim::{simulate, SimulateOptions};
@@ -23,6 +24,7 @@ fn args(out: &Path) -> SimulateOptions {
         seed: 11,
         out: out.to_path_buf(),
         image_size: S,
+        frame: PointFrame::BoxHeading,
         preview: true,
         requests: Some(1),
         points_cap: 300,

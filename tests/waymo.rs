@@ -6,7 +6,7 @@
 use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
-use posefuse::pipeline::PipelineConfig;
+use posefuse::pipeline::{PipelineConfig, PointFrame};
 use posefuse::sim::dataset::Sample;
 use posefuse::sim::street::Profile;
 use posefuse::waymo::convert::{convert, frame_points, ConvertOptions};
@@ -59,6 +59,7 @@ fn convert_to(root: &Path, image_size: u32) -> (PathBuf, posefuse::waymo::conver
         segments: None,
         cameras: None,
         image_size,
+        frame: PointFrame::BoxHeading,
         points_cap: 1024,
         requests: true,
         jobs: Some(2),

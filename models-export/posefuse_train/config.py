@@ -23,6 +23,9 @@ class PipelineConfig:
     num_points: int = 256
     box_margin: float = 0.15
     rotate_by_heading: bool = True
+    # The point networks' frame (src/pipeline/config.rs `PointFrame`); None: after rotate_by_heading.
+    frame: str | None = None
+    view_origin: list[float] = field(default_factory=lambda: [1.43, 0.0, 2.12])
     lift_temperature: float = 2000.0
     min_points: int = 8
 
@@ -38,8 +41,16 @@ class PipelineConfig:
             raise ValueError(f"unknown preprocessing keys: {sorted(unknown)}")
         return PipelineConfig(**d)
 
+    def point_frame(self) -> str:
+        """box_heading, view or centred, as the server reads it."""
+        if self.frame is not None:
+            return self.frame
+        return "box_heading" if self.rotate_by_heading else "centred"
+
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
+        if d["frame"] is None:
+            del d["frame"]
         d["mean"] = [float(x) for x in d["mean"]]
         d["std"] = [float(x) for x in d["std"]]
         return d

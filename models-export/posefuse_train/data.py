@@ -29,6 +29,7 @@ KEYS = (
     "extrinsic",
     "image_size_wh",
     "sensor_xyz",
+    "frame_yaw",
     "range_m",
     "frame_index",
 )

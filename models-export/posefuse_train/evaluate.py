@@ -31,7 +31,7 @@ def evaluate(pred_local: np.ndarray, data: dict, cfg: PipelineConfig) -> dict:
     e3 = metrics.evaluate_persons(
         pred_local, data["kp3d"], data["kp3d_visible"] > 0, metrics.box_scale_3d(data["box3d"])
     )
-    vehicle = metrics.local_to_vehicle(pred_local, data["box3d"], cfg.rotate_by_heading)
+    vehicle = metrics.local_to_vehicle(pred_local, data["box3d"], data["frame_yaw"])
     px = metrics.project(vehicle, data["intrinsic"], data["extrinsic"])
     e2 = metrics.evaluate_persons(
         px, data["kp2d_image_true"], data["kp2d_visible"] > 0, metrics.box_scale_2d(data["box2d"])

@@ -116,12 +116,12 @@ def report(e3: dict, e2: dict | None) -> dict:
 # --- geometry for OKS@2D ---------------------------------------------------------------------
 
 
-def local_to_vehicle(local: np.ndarray, box3d: np.ndarray, rotate_by_heading: bool) -> np.ndarray:
-    """Model-input coordinates [M,K,3] -> vehicle frame (inverse of: subtract centre, rotate by
-    -heading)."""
+def local_to_vehicle(local: np.ndarray, box3d: np.ndarray, frame_yaw: np.ndarray) -> np.ndarray:
+    """Model-input coordinates [M,K,3] -> vehicle frame (inverse of: subtract the box centre,
+    rotate by -frame_yaw; the shards' `frame_yaw` is the model frame's yaw, docs/DATA.md)."""
     q = np.asarray(local, np.float64)
     b = np.asarray(box3d, np.float64)
-    h = b[:, 6] if rotate_by_heading else np.zeros(len(b))
+    h = np.asarray(frame_yaw, np.float64).reshape(len(b))
     c, s = np.cos(h)[:, None], np.sin(h)[:, None]
     x = b[:, None, 0] + c * q[..., 0] - s * q[..., 1]
     y = b[:, None, 1] + s * q[..., 0] + c * q[..., 1]

@@ -115,6 +115,7 @@ def make_sample(rng, cfg: PipelineConfig, cap: int):
         "extrinsic": np.eye(4, dtype=np.float32).reshape(16),
         "image_size_wh": np.array([W, H], np.int32),
         "sensor_xyz": sensor_local.astype(np.float32),
+        "frame_yaw": np.float32(heading),
         "range_m": np.float32(np.hypot(centre[0], centre[1])),
         "frame_index": np.int32(0),
     }

@@ -79,8 +79,8 @@ def test_metrics_match_the_server_golden_cases():
 
 
 def test_box_frame_matches_the_server_golden_vectors():
-    """tests/golden/points.json: vehicle points and their model-input (box-frame) coordinates as
-    the Rust pipeline computes them; the Python inverse maps the latter back onto the former."""
+    """tests/golden/points.json: vehicle points and their model-input coordinates (box and view
+    frames) as the Rust pipeline computes them; the Python inverse maps the latter back onto the former."""
     path = GOLDEN / "points.json"
     if not path.exists():
         pytest.fail(f"{path} is missing: it is written from src/pipeline and pins the Python copy")
@@ -89,8 +89,14 @@ def test_box_frame_matches_the_server_golden_vectors():
     box = np.array(
         [[b[k] for k in ("center_x", "center_y", "center_z", "length", "width", "height", "heading")]]
     )
-    local = np.array(g["local"], np.float64)[None]
-    vehicle = metrics.local_to_vehicle(local, box, g["rotate_by_heading"])
-    np.testing.assert_allclose(vehicle[0], g["vehicle"], rtol=0, atol=1e-9)
-    # the heading matters: without it the points land elsewhere
-    assert np.abs(metrics.local_to_vehicle(local, box, False)[0] - g["vehicle"]).max() > 0.1
+    for frame in ("box_heading", "view"):
+        local = np.array(g[frame]["local"], np.float64)[None]
+        yaw = np.array([g[frame]["frame_yaw"]])
+        vehicle = metrics.local_to_vehicle(local, box, yaw)
+        np.testing.assert_allclose(vehicle[0], g["vehicle"], rtol=0, atol=1e-9)
+        # the frame's yaw matters: without it the points land elsewhere
+        assert np.abs(metrics.local_to_vehicle(local, box, np.zeros(1))[0] - g["vehicle"]).max() > 0.1
+    assert g["box_heading"]["frame_yaw"] == b["heading"]
+    # the view frame looks along the ray from the sensor to the box centre
+    o = g["view_origin"]
+    assert g["view"]["frame_yaw"] == pytest.approx(np.arctan2(b["center_y"] - o[1], b["center_x"] - o[0]))

@@ -175,7 +175,7 @@ def evaluate_bundle(bundle: Path, root: Path, fixtures_only: bool, modes=("auto"
                 report["metrics"][name] = evaluate(local[sel], data_mod.subset(d, sel), cfg)
         reports[requested] = report
         if fx is not None:
-            vehicle = local_to_vehicle(local, d["box3d"], cfg.rotate_by_heading)
+            vehicle = local_to_vehicle(local, d["box3d"], d["frame_yaw"])
             frames: dict = {}
             for i in range(m):
                 frame = frames.setdefault(

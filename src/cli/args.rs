@@ -8,6 +8,7 @@ use std::time::Duration;
 use posefuse::eval::HeadingNoise;
 use posefuse::frame::RequestedMode;
 use posefuse::loadbench::{BenchOptions, ImageForm, Protocol};
+use posefuse::pipeline::PointFrame;
 use posefuse::runtime::RuntimeConfig;
 use posefuse::server::conn::ConnLimits;
 use posefuse::server::ServerConfig;
@@ -207,6 +208,9 @@ pub struct SimulateArgs {
     /// Side S of the camera crops.
     #[arg(long, default_value_t = 256)]
     pub image_size: u32,
+    /// The point networks' frame the samples are prepared in (docs/BUNDLE.md, "Point frame").
+    #[arg(long, value_enum, default_value_t = PointFrame::BoxHeading)]
+    pub frame: PointFrame,
     /// Write PNG contact sheets to OUT/preview.
     #[arg(long)]
     pub preview: bool,
@@ -233,6 +237,7 @@ impl From<SimulateArgs> for SimulateOptions {
             seed: a.seed,
             out: a.out,
             image_size: a.image_size,
+            frame: a.frame,
             preview: a.preview,
             requests: a.requests,
             points_cap: a.points_cap,

@@ -2,6 +2,7 @@
 
 use std::path::PathBuf;
 
+use posefuse::pipeline::PointFrame;
 use posefuse::sim::street::Profile;
 use posefuse::waymo::convert::{convert, ConvertOptions};
 use posefuse::waymo::schema::{name_value, CAMERA_NAMES};
@@ -143,6 +144,9 @@ pub struct WaymoConvertArgs {
     /// Side S of the camera crops.
     #[arg(long, default_value_t = 256)]
     pub image_size: u32,
+    /// The point networks' frame the samples are prepared in (docs/BUNDLE.md, "Point frame").
+    #[arg(long, value_enum, default_value_t = PointFrame::BoxHeading)]
+    pub frame: PointFrame,
     /// Most in-box points kept per sample (P in docs/DATA.md).
     #[arg(long, default_value_t = 1024)]
     pub points_cap: usize,
@@ -190,6 +194,7 @@ pub fn run(a: WaymoArgs) -> anyhow::Result<()> {
                 segments: c.segments,
                 cameras,
                 image_size: c.image_size,
+                frame: c.frame,
                 points_cap: c.points_cap,
                 requests: !c.no_requests,
                 jobs: c.jobs,

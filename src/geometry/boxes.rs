@@ -24,6 +24,11 @@ impl BoxFrame {
         }
     }
 
+    /// The same centre and size, turned to another heading.
+    pub fn turned_to(&self, heading: f64) -> BoxFrame {
+        BoxFrame { heading, cos: heading.cos(), sin: heading.sin(), ..*self }
+    }
+
     /// Vehicle frame → box frame (translate to the centre, rotate by −heading).
     pub fn to_local(&self, p: [f64; 3]) -> [f64; 3] {
         let (dx, dy) = (p[0] - self.center[0], p[1] - self.center[1]);

@@ -4,6 +4,27 @@
 
 use serde::{Deserialize, Serialize};
 
+/// Where the point networks' coordinates come from (docs/BUNDLE.md, "Point frame"). Every frame
+/// has its origin at the 3D box's centre and z up; they differ in where x points.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema, clap::ValueEnum)]
+#[serde(rename_all = "snake_case")]
+pub enum PointFrame {
+    /// x along the box heading: the networks read the body's facing from the box.
+    BoxHeading,
+    /// x along the horizontal ray from `view_origin` to the box centre: needs no heading, and the
+    /// sensor always sits on the −x side, so only the facing relative to the viewer is unknown.
+    View,
+    /// The vehicle's axes, only translated.
+    Centred,
+}
+
+/// The top LiDAR's nominal position in the vehicle frame, from where the view frame's ray starts.
+pub const NOMINAL_LIDAR_ORIGIN: [f64; 3] = [1.43, 0.0, 2.12];
+
+fn nominal_lidar_origin() -> [f64; 3] {
+    NOMINAL_LIDAR_ORIGIN
+}
+
 /// Every size, constant and switch of the pre-processing pipeline.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
@@ -26,8 +47,15 @@ pub struct PipelineConfig {
     pub num_points: u32,
     /// Metres added on every side of the 3D box when collecting its points.
     pub box_margin: f64,
-    /// Rotate point coordinates by −heading so they are expressed in the box frame.
+    /// Rotate point coordinates by −heading so they are expressed in the box frame. Bundles older
+    /// than `frame` say only this; with `frame` present it must agree (true ⇔ `box_heading`).
     pub rotate_by_heading: bool,
+    /// The point networks' frame; absent: `box_heading` or `centred` after `rotate_by_heading`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub frame: Option<PointFrame>,
+    /// Vehicle-frame start of the view frame's ray (metres).
+    #[serde(default = "nominal_lidar_origin")]
+    pub view_origin: [f64; 3],
     /// Temperature T of eq. 1 (camera-only lifting and pseudo labels): α ∝ exp(−T·d²) with d the
     /// 2D distance in model-input pixels divided by `image_size`, so T does not depend on S.
     pub lift_temperature: f64,
@@ -48,6 +76,8 @@ impl Default for PipelineConfig {
             num_points: 256,
             box_margin: 0.15,
             rotate_by_heading: true,
+            frame: None,
+            view_origin: NOMINAL_LIDAR_ORIGIN,
             lift_temperature: 2000.0,
             min_points: 8,
         }
@@ -58,6 +88,20 @@ impl PipelineConfig {
     /// The default configuration at another crop size (heatmaps at a quarter of it).
     pub fn with_image_size(image_size: u32) -> Self {
         PipelineConfig { image_size, heatmap_size: image_size / 4, ..Self::default() }
+    }
+
+    /// The same configuration with the point networks in `frame`.
+    pub fn in_frame(self, frame: PointFrame) -> Self {
+        PipelineConfig { rotate_by_heading: frame == PointFrame::BoxHeading, frame: Some(frame), ..self }
+    }
+
+    /// The frame the point networks see.
+    pub fn point_frame(&self) -> PointFrame {
+        match (self.frame, self.rotate_by_heading) {
+            (Some(f), _) => f,
+            (None, true) => PointFrame::BoxHeading,
+            (None, false) => PointFrame::Centred,
+        }
     }
 
     /// Checks internal consistency (used when a bundle or a dataset is loaded).
@@ -82,6 +126,14 @@ impl PipelineConfig {
         {
             return Err("crop_scale must be >= 1 and lift_temperature > 0".into());
         }
+        if let Some(f) = self.frame {
+            if self.rotate_by_heading != (f == PointFrame::BoxHeading) {
+                return Err(format!("rotate_by_heading {} contradicts frame {f:?}", self.rotate_by_heading));
+            }
+        }
+        if !self.view_origin.iter().all(|v| v.is_finite()) {
+            return Err("view_origin must be finite".into());
+        }
         Ok(())
     }
 }
@@ -104,9 +156,34 @@ mod tests {
             PipelineConfig { crop_scale: 0.9, ..ok.clone() },
             PipelineConfig { lift_temperature: 0.0, ..ok.clone() },
             PipelineConfig { lift_temperature: f64::NAN, ..ok.clone() },
+            PipelineConfig { rotate_by_heading: true, ..ok.clone().in_frame(PointFrame::View) },
+            PipelineConfig { rotate_by_heading: false, ..ok.clone().in_frame(PointFrame::BoxHeading) },
+            PipelineConfig { view_origin: [0.0, f64::NAN, 0.0], ..ok.clone() },
         ];
         for (i, cfg) in bad.iter().enumerate() {
             assert!(cfg.validate().is_err(), "case {i} accepted: {cfg:?}");
         }
+        for f in [PointFrame::BoxHeading, PointFrame::View, PointFrame::Centred] {
+            assert_eq!(ok.clone().in_frame(f).validate(), Ok(()));
+            assert_eq!(ok.clone().in_frame(f).point_frame(), f);
+        }
+    }
+
+    #[test]
+    fn bundles_without_a_frame_keep_their_meaning() {
+        let mut v = serde_json::to_value(PipelineConfig::default()).unwrap_or_default();
+        assert!(v.get("frame").is_none(), "no frame written unless chosen: {v}");
+        if let Some(o) = v.as_object_mut() {
+            o.remove("view_origin");
+        }
+        let old: PipelineConfig = serde_json::from_value(v.clone()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(old.point_frame(), PointFrame::BoxHeading);
+        assert_eq!(old.view_origin, NOMINAL_LIDAR_ORIGIN);
+        v["rotate_by_heading"] = false.into();
+        let old: PipelineConfig = serde_json::from_value(v.clone()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(old.point_frame(), PointFrame::Centred);
+        v["frame"] = "view".into();
+        let new: PipelineConfig = serde_json::from_value(v).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(new.point_frame(), PointFrame::View);
     }
 }

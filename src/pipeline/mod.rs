@@ -10,7 +10,7 @@ mod lift;
 mod points;
 mod prepare;
 
-pub use config::PipelineConfig;
+pub use config::{PipelineConfig, PointFrame, NOMINAL_LIDAR_ORIGIN};
 pub use crop::{crop_rgb, normalize, CropTransform};
 pub use decode_plan::{plan_decode, scaled, DecodePlan, PixelRect, DCT_DENOMINATORS};
 pub use facing::{facing, yaw_difference, Facing, FULL_WIDTH_M};
@@ -19,6 +19,7 @@ pub use fusion::{
 };
 pub use lift::{decode_heatmaps, lift, reliability};
 pub use points::{
-    from_local, gather_points, input_seed, model_uv, point_input, select_indices, to_local, PersonPoints, PointInput,
+    from_local, gather_points, input_seed, model_frame, model_uv, point_input, select_indices, to_local, PersonPoints,
+    PointInput,
 };
 pub use prepare::{keypoints_to_vehicle, prepare_person, PreparedPerson};

@@ -4,7 +4,7 @@
 use rand::{seq::index, Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
 
-use super::{CropTransform, PipelineConfig};
+use super::{CropTransform, PipelineConfig, PointFrame};
 use crate::geometry::{BoxFrame, Camera};
 
 /// All points of one person (inside the box grown by `box_margin`).
@@ -57,22 +57,29 @@ pub struct PointInput {
     pub indices: Vec<usize>,
 }
 
+/// The model-input frame of a person's box under `cfg` (see [`PointFrame`]): the box's centre and
+/// size, turned to the frame's x axis.
+pub fn model_frame(b: &BoxFrame, cfg: &PipelineConfig) -> BoxFrame {
+    match cfg.point_frame() {
+        PointFrame::BoxHeading => *b,
+        PointFrame::Centred => b.turned_to(0.0),
+        PointFrame::View => {
+            let o = cfg.view_origin;
+            let (dx, dy) = (b.center[0] - o[0], b.center[1] - o[1]);
+            // A box centred on the origin's vertical has no ray: any x will do, the vehicle's is stable.
+            b.turned_to(if dx == 0.0 && dy == 0.0 { 0.0 } else { dy.atan2(dx) })
+        }
+    }
+}
+
 /// Vehicle frame → model-input coordinates.
 pub fn to_local(b: &BoxFrame, p: [f64; 3], cfg: &PipelineConfig) -> [f64; 3] {
-    if cfg.rotate_by_heading {
-        b.to_local(p)
-    } else {
-        [p[0] - b.center[0], p[1] - b.center[1], p[2] - b.center[2]]
-    }
+    model_frame(b, cfg).to_local(p)
 }
 
 /// Model-input coordinates → vehicle frame.
 pub fn from_local(b: &BoxFrame, q: [f64; 3], cfg: &PipelineConfig) -> [f64; 3] {
-    if cfg.rotate_by_heading {
-        b.to_vehicle(q)
-    } else {
-        [q[0] + b.center[0], q[1] + b.center[1], q[2] + b.center[2]]
-    }
+    model_frame(b, cfg).to_vehicle(q)
 }
 
 /// The points of `points` (vehicle frame) inside `b` grown by `cfg.box_margin`. Projection waits
@@ -84,6 +91,7 @@ pub fn gather_points(points: &[[f32; 3]], b: &BoxFrame, cfg: &PipelineConfig) ->
     let lo = [b.center[0] - reach, b.center[1] - reach, b.center[2] - b.size[2] / 2.0 - m].map(|v| (v - 1e-3) as f32);
     let hi = [b.center[0] + reach, b.center[1] + reach, b.center[2] + b.size[2] / 2.0 + m].map(|v| (v + 1e-3) as f32);
     let half = [b.size[0] / 2.0 + m, b.size[1] / 2.0 + m, b.size[2] / 2.0 + m];
+    let model = model_frame(b, cfg);
     let mut out = PersonPoints::default();
     for p in points {
         if p[0] < lo[0] || p[0] > hi[0] || p[1] < lo[1] || p[1] > hi[1] || p[2] < lo[2] || p[2] > hi[2] {
@@ -94,7 +102,7 @@ pub fn gather_points(points: &[[f32; 3]], b: &BoxFrame, cfg: &PipelineConfig) ->
         if (0..3).any(|a| boxed[a].abs() > half[a]) {
             continue;
         }
-        let l = if cfg.rotate_by_heading { boxed } else { to_local(b, q, cfg) };
+        let l = if cfg.point_frame() == PointFrame::BoxHeading { boxed } else { model.to_local(q) };
         out.local.push([l[0] as f32, l[1] as f32, l[2] as f32]);
         out.vehicle.push(*p);
     }
@@ -154,8 +162,8 @@ mod tests {
     use super::*;
     use crate::frame::Box3d;
 
-    fn person_box() -> BoxFrame {
-        BoxFrame::new(&Box3d {
+    fn person_box_3d() -> Box3d {
+        Box3d {
             center_x: 10.0,
             center_y: 2.0,
             center_z: 0.9,
@@ -163,7 +171,11 @@ mod tests {
             width: 0.8,
             height: 1.8,
             heading: std::f64::consts::FRAC_PI_2,
-        })
+        }
+    }
+
+    fn person_box() -> BoxFrame {
+        BoxFrame::new(&person_box_3d())
     }
 
     #[test]
@@ -191,9 +203,36 @@ mod tests {
         let q = from_local(&b, [0.1, -0.35, 0.2], &cfg);
         let back = to_local(&b, q, &cfg);
         assert!((back[0] - 0.1).abs() < 1e-12 && (back[1] + 0.35).abs() < 1e-12 && (back[2] - 0.2).abs() < 1e-12);
-        let unrotated = PipelineConfig { rotate_by_heading: false, ..cfg };
+        let unrotated = PipelineConfig { rotate_by_heading: false, ..cfg.clone() };
         let l = to_local(&b, [10.35, 2.0, 0.9], &unrotated);
         assert!((l[0] - 0.35).abs() < 1e-12 && l[1].abs() < 1e-12 && l[2].abs() < 1e-12);
+        let view = cfg.in_frame(PointFrame::View);
+        let pv = gather_points(&pts, &b, &view);
+        assert_eq!(pv.vehicle, pp.vehicle, "the frame changes coordinates, not membership");
+    }
+
+    #[test]
+    fn the_view_frame_looks_from_the_sensor_and_ignores_the_heading() {
+        let cfg =
+            PipelineConfig { view_origin: [1.0, 0.0, 2.0], ..PipelineConfig::default() }.in_frame(PointFrame::View);
+        // box centre (10, 2): the ray from (1, 0) runs along (9, 2)
+        let ray = 2f64.atan2(9.0);
+        for heading in [0.0, 1.0, -2.5, std::f64::consts::PI] {
+            let b = BoxFrame::new(&Box3d { heading, ..person_box_3d() });
+            assert!((model_frame(&b, &cfg).heading - ray).abs() < 1e-12);
+            // a point 0.3 m further along the ray: +x; 0.2 m to the ray's left: +y; z relative
+            let (c, s) = (ray.cos(), ray.sin());
+            let p = [10.0 + 0.3 * c - 0.2 * s, 2.0 + 0.3 * s + 0.2 * c, 1.2];
+            let l = to_local(&b, p, &cfg);
+            assert!((l[0] - 0.3).abs() < 1e-12 && (l[1] - 0.2).abs() < 1e-12 && (l[2] - 0.3).abs() < 1e-12, "{l:?}");
+            let back = from_local(&b, l, &cfg);
+            assert!((0..3).all(|a| (back[a] - p[a]).abs() < 1e-12));
+        }
+        // the sensor itself is on the −x side of every person
+        let b = BoxFrame::new(&person_box_3d());
+        assert!(to_local(&b, [1.0, 0.0, 2.0], &cfg)[0] < -9.0);
+        let over = BoxFrame::new(&Box3d { center_x: 1.0, center_y: 0.0, ..person_box_3d() });
+        assert_eq!(model_frame(&over, &cfg).heading, 0.0);
     }
 
     #[test]

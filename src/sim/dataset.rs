@@ -30,7 +30,8 @@ use crate::frame::{Frame, GroundTruth, Keypoints2d, Keypoints3d, Person, Points,
 use crate::image_decode::{self, DecodedImage};
 use crate::keypoints::K;
 use crate::pipeline::{
-    crop_rgb, input_seed, plan_decode, prepare_person, select_indices, to_local, CropTransform, PipelineConfig,
+    crop_rgb, input_seed, model_frame, plan_decode, prepare_person, select_indices, to_local, CropTransform,
+    PipelineConfig,
 };
 
 /// Samples per shard.
@@ -59,6 +60,9 @@ pub struct Sample {
     pub extrinsic: [f32; 16],
     pub image_size_wh: [i32; 2],
     pub sensor_xyz: [f32; 3],
+    /// Yaw (vehicle frame, radians) of the model-input frame's x axis: where the box frame turns
+    /// local coordinates back into the vehicle frame (docs/DATA.md).
+    pub frame_yaw: f32,
     pub range_m: f32,
     pub frame_index: i32,
 }
@@ -353,6 +357,7 @@ fn make_sample(
         extrinsic: std::array::from_fn(|i| calib.extrinsic[i] as f32),
         image_size_wh: [world.camera.width as i32, world.camera.height as i32],
         sensor_xyz: f32x(to_local(bf, LIDAR_ORIGIN, cfg)),
+        frame_yaw: model_frame(bf, cfg).heading as f32,
         range_m: lidar_range([b.center_x, b.center_y, b.center_z]) as f32,
         frame_index: index as i32,
     }
@@ -480,6 +485,7 @@ impl ShardWriter {
         add(&mut npz, "extrinsic", &[m, 16], b.iter().flat_map(|x| x.extrinsic).collect())?;
         add(&mut npz, "image_size_wh", &[m, 2], b.iter().flat_map(|x| x.image_size_wh).collect())?;
         add(&mut npz, "sensor_xyz", &[m, 3], b.iter().flat_map(|x| x.sensor_xyz).collect())?;
+        add(&mut npz, "frame_yaw", &[m], b.iter().map(|x| x.frame_yaw).collect())?;
         add(&mut npz, "range_m", &[m], b.iter().map(|x| x.range_m).collect())?;
         add(&mut npz, "frame_index", &[m], b.iter().map(|x| x.frame_index).collect())?;
         npz.finish().map_err(|e| Error::Io(format!("shard {name}: {e}")))?;

@@ -41,6 +41,8 @@ pub struct SimulateOptions {
     pub out: std::path::PathBuf,
     /// Side S of the camera crops.
     pub image_size: u32,
+    /// The point networks' frame the samples are prepared in.
+    pub frame: crate::pipeline::PointFrame,
     /// Write PNG contact sheets to OUT/preview.
     pub preview: bool,
     /// Frames (from the first) that also get a request fixture in OUT/requests. Default: every
@@ -62,7 +64,7 @@ pub fn near_px(cfg: &PipelineConfig) -> f64 {
 
 /// Runs `posefuse simulate`.
 pub fn simulate(args: SimulateOptions) -> anyhow::Result<()> {
-    let cfg = PipelineConfig::with_image_size(args.image_size);
+    let cfg = PipelineConfig::with_image_size(args.image_size).in_frame(args.frame);
     cfg.validate().map_err(|e| anyhow::anyhow!("--image-size {}: {e}", args.image_size))?;
     anyhow::ensure!(args.count > 0, "--count must be positive");
     anyhow::ensure!(args.points_cap > 0, "--points-cap must be positive");

@@ -18,7 +18,7 @@ use crate::geometry::Camera;
 use crate::keypoints::K;
 
 /// The top LiDAR's origin in the vehicle frame (Waymo-like: about 2.1 m above the ground).
-pub const LIDAR_ORIGIN: V3 = [1.43, 0.0, 2.12];
+pub const LIDAR_ORIGIN: V3 = crate::pipeline::NOMINAL_LIDAR_ORIGIN;
 /// Metres added on each side of the body's extent for the 3D box.
 pub const BOX3D_MARGIN: f64 = 0.05;
 

@@ -17,7 +17,7 @@ use super::schema::{keypoint_index, LASER_TOP};
 use crate::frame::{Box2d, Box3d, Frame, GroundTruth, Keypoints2d, Keypoints3d, Person, Points, RequestedMode};
 use crate::geometry::{BoxFrame, Camera};
 use crate::keypoints::K;
-use crate::pipeline::{prepare_person, to_local, CropTransform, PipelineConfig};
+use crate::pipeline::{model_frame, prepare_person, to_local, CropTransform, PipelineConfig, PointFrame};
 use crate::sim::dataset::{decode_jpeg, sample_points, Sample, SamplePoints, ShardWriter};
 use crate::sim::world::LIDAR_ORIGIN;
 
@@ -133,6 +133,7 @@ pub fn person_sample(
         extrinsic: std::array::from_fn(|i| calib.extrinsic[i] as f32),
         image_size_wh: [cam.width as i32, cam.height as i32],
         sensor_xyz: f32x(to_local(bf, sensor, cfg)),
+        frame_yaw: model_frame(bf, cfg).heading as f32,
         range_m: (v[0] * v[0] + v[1] * v[1]).sqrt() as f32,
         frame_index,
     }
@@ -176,6 +177,8 @@ pub struct ConvertOptions {
     /// Only these cameras (enum values); `None`: all.
     pub cameras: Option<Vec<i64>>,
     pub image_size: u32,
+    /// The point networks' frame the samples are prepared in.
+    pub frame: PointFrame,
     pub points_cap: usize,
     /// Write request fixtures.
     pub requests: bool,
@@ -338,7 +341,7 @@ const CHUNK_FRAMES: usize = 4;
 /// Runs `posefuse waymo convert`.
 pub fn convert(o: &ConvertOptions) -> anyhow::Result<ConvertSummary> {
     let started = std::time::Instant::now();
-    let cfg = PipelineConfig::with_image_size(o.image_size);
+    let cfg = PipelineConfig::with_image_size(o.image_size).in_frame(o.frame);
     cfg.validate().map_err(|e| anyhow::anyhow!("--image-size {}: {e}", o.image_size))?;
     let mut names = super::sim::segments_in(&o.dataset)?;
     anyhow::ensure!(!names.is_empty(), "{}: no segments (no lidar/*.parquet)", o.dataset.display());
