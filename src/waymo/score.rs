@@ -124,7 +124,13 @@ pub fn scoring_requests(
             .filter(|c| c.laser_object.as_deref() == Some(p.id.as_str()) && cameras.contains_key(&c.camera))
             .filter(|c| f.images.contains_key(&c.camera))
             .max_by(|a, b| (a.box2d.width * a.box2d.height).total_cmp(&(b.box2d.width * b.box2d.height)));
-        let person = Person { id: p.id.clone(), box_2d: best.map(|c| c.box2d), box_3d: p.box3d, ground_truth: None };
+        let person = Person {
+            id: p.id.clone(),
+            camera: None,
+            box_2d: best.map(|c| c.box2d),
+            box_3d: p.box3d,
+            ground_truth: None,
+        };
         match best {
             Some(c) => by_camera.entry(c.camera).or_default().push(person),
             None => lidar_only.push(person),
@@ -138,7 +144,8 @@ pub fn scoring_requests(
             frame_id: Some(format!("{}/{}/{cam}", seg.name, f.timestamp)),
             image: f.images.get(&cam).map(|j| base64::engine::general_purpose::STANDARD.encode(j)),
             image_rgb: None,
-            calibration: cameras[&cam].to_calibration(),
+            calibration: Some(cameras[&cam].to_calibration()),
+            cameras: Vec::new(),
             points: Points::encode(&near_boxes(&points, &boxes(&persons))),
             persons,
             mode: RequestedMode::Auto,
@@ -153,7 +160,8 @@ pub fn scoring_requests(
             frame_id: Some(format!("{}/{}/lidar", seg.name, f.timestamp)),
             image: None,
             image_rgb: None,
-            calibration,
+            calibration: Some(calibration),
+            cameras: Vec::new(),
             points: Points::encode(&near_boxes(&points, &boxes(&lidar_only))),
             persons: lidar_only,
             mode: RequestedMode::Auto,
