@@ -19,7 +19,10 @@ pub fn visible_share(camera: &Camera, b: &Box3d) -> Option<VisibleShare> {
     let full = projected_box(camera, b)?;
     let clipped = clip_to_image(full, camera.width, camera.height);
     let visible_area = clipped.width.max(0.0) * clipped.height.max(0.0);
-    let fraction = visible_area / (full.width * full.height);
+    // the whole extent computed as `clip_to_image` computes the clipped one, so that a box wholly
+    // inside the image has a fraction of exactly 1 and such ties go to the area
+    let extent = |c: f64, s: f64| (c + s / 2.0) - (c - s / 2.0);
+    let fraction = visible_area / (extent(full.center_x, full.width) * extent(full.center_y, full.height));
     (fraction.is_finite() && visible_area > 0.0).then_some(VisibleShare { fraction, visible_area })
 }
 
