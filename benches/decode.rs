@@ -57,7 +57,7 @@ fn cases(limit: usize) -> Vec<Case> {
                 jpeg420: encode(&img, jpeg_encoder::SamplingFactor::R_4_2_0),
                 jpeg444: jpeg,
                 windows,
-                size: (f.calibration.width, f.calibration.height),
+                size: f.calibration.as_ref().map(|c| (c.width, c.height)).unwrap(),
             }
         })
         .collect()

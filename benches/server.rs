@@ -49,7 +49,7 @@ fn bench_frame() -> (Frame, String) {
             for p in &mut frame.persons {
                 p.ground_truth = None;
             }
-            let c = &frame.calibration;
+            let c = frame.calibration.as_ref().unwrap();
             let label = format!("{}x{} image, {} points", c.width, c.height, frame.points.decode().unwrap().len());
             (frame, label)
         }
@@ -65,7 +65,7 @@ fn model_inputs(models: &mut Models, bundle: &Bundle, frame: &Frame) -> (Vec<f32
     let cfg = bundle.config();
     let img = image::load_from_memory(&image_bytes(frame)).unwrap().to_rgb8();
     let p = &frame.persons[0];
-    let camera = Camera::from_calibration(&frame.calibration).unwrap();
+    let camera = Camera::from_calibration(frame.calibration.as_ref().unwrap()).unwrap();
     let prepared =
         prepare_person(None, Some(&camera), &frame.points.decode().unwrap(), &p.box_3d, p.box_2d.as_ref(), cfg);
     let image_input = normalize(&crop_rgb(&img, prepared.crop.as_ref().unwrap()), cfg);

@@ -48,6 +48,22 @@ impl Error {
         Error::InvalidField { field: field.into(), message: message.into() }
     }
 
+    /// The same error with its field inside `parent` (`calibration.width` of `cameras[1]` becomes
+    /// `cameras[1].calibration.width`): one camera's checks serve the single-camera form and each
+    /// of a frame's `cameras`.
+    pub fn within(self, parent: &str) -> Self {
+        match self {
+            _ if parent.is_empty() => self,
+            Error::InvalidField { field, message } => {
+                Error::InvalidField { field: format!("{parent}.{field}"), message }
+            }
+            Error::InsufficientData { field, message } => {
+                Error::InsufficientData { field: format!("{parent}.{field}"), message }
+            }
+            other => other,
+        }
+    }
+
     /// The offending field, for errors about one.
     pub fn field_name(&self) -> Option<&str> {
         match self {

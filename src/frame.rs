@@ -8,7 +8,10 @@ use serde::{Deserialize, Serialize};
 use crate::error::{Error, Result};
 use crate::keypoints::K;
 
-/// One frame: camera image, calibration, LiDAR points and the persons to estimate.
+pub use crate::frame_cameras::FrameCamera;
+
+/// One frame: one LiDAR sweep, the persons to estimate and either one camera (`image` or
+/// `image_rgb` with `calibration`) or several (`cameras`), never both.
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Frame {
@@ -21,8 +24,13 @@ pub struct Frame {
     /// Decoded camera pixels instead of an encoded `image` (never both).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub image_rgb: Option<RgbPixels>,
-    /// Calibration of the camera that took `image`.
-    pub calibration: CameraCalibration,
+    /// Calibration of the camera that took `image`; required unless `cameras` is given.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub calibration: Option<CameraCalibration>,
+    /// Several cameras of the same instant instead of `image`/`image_rgb`/`calibration`; each
+    /// person uses the one it names, else the one that sees its 3D box best.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub cameras: Vec<FrameCamera>,
     /// LiDAR points in the vehicle frame (x forward, y left, z up; metres).
     pub points: Points,
     /// Persons to estimate.
@@ -138,7 +146,11 @@ pub enum RequestedMode {
 pub struct Person {
     /// Caller's identifier, echoed in the response.
     pub id: String,
-    /// 2D box in image pixels. Absent: derived from the projected 3D box.
+    /// The `cameras` entry (by name) to use for this person. Absent: the camera that sees the
+    /// projected 3D box best. Required with `box_2d` when the frame has `cameras`.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<String>,
+    /// 2D box in image pixels (of the person's camera). Absent: derived from the projected 3D box.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub box_2d: Option<Box2d>,
     /// 3D box in the vehicle frame.
@@ -356,7 +368,7 @@ impl GroundTruth {
 impl Frame {
     /// Validates everything that can be checked without decoding the image or the points.
     pub fn validate(&self) -> Result<()> {
-        self.calibration.validate()?;
+        self.validate_cameras()?;
         if self.persons.is_empty() {
             return Err(Error::field("persons", "at least one person is required"));
         }
@@ -366,6 +378,7 @@ impl Frame {
             if !ids.insert(p.id.as_str()) {
                 return Err(Error::field(format!("{f}.id"), format!("duplicate person id `{}`", p.id)));
             }
+            self.validate_person_camera(p, &f)?;
             if let Some(b) = &p.box_2d {
                 b.validate(&format!("{f}.box_2d"))?;
             }
@@ -400,10 +413,12 @@ mod tests {
             frame_id: None,
             image: None,
             image_rgb: None,
-            calibration: calib(),
+            calibration: Some(calib()),
+            cameras: Vec::new(),
             points: Points::Flat(vec![10.0, 0.0, 1.0]),
             persons: vec![Person {
                 id: "p".into(),
+                camera: None,
                 box_2d: Some(Box2d { center_x: 960.0, center_y: 640.0, width: 50.0, height: 150.0 }),
                 box_3d: Box3d {
                     center_x: 10.0,
@@ -463,19 +478,19 @@ mod tests {
     #[test]
     fn each_validation_error_names_its_field() {
         let mut f = frame();
-        f.calibration.intrinsic.pop();
+        f.calibration.as_mut().unwrap().intrinsic.pop();
         assert_eq!(field_of(f.validate()), "calibration.intrinsic");
         let mut f = frame();
-        f.calibration.extrinsic.push(0.0);
+        f.calibration.as_mut().unwrap().extrinsic.push(0.0);
         assert_eq!(field_of(f.validate()), "calibration.extrinsic");
         let mut f = frame();
-        f.calibration.intrinsic[0] = 0.0;
+        f.calibration.as_mut().unwrap().intrinsic[0] = 0.0;
         assert_eq!(field_of(f.validate()), "calibration.intrinsic[0] (f_u)");
         let mut f = frame();
-        f.calibration.intrinsic[3] = f64::NAN;
+        f.calibration.as_mut().unwrap().intrinsic[3] = f64::NAN;
         assert_eq!(field_of(f.validate()), "calibration.intrinsic[3]");
         let mut f = frame();
-        f.calibration.width = 0;
+        f.calibration.as_mut().unwrap().width = 0;
         assert_eq!(field_of(f.validate()), "calibration.width/height");
         let mut f = frame();
         f.persons.clear();

@@ -20,7 +20,7 @@ use base64::Engine;
 use image::RgbImage;
 
 use crate::error::{Error, Result};
-use crate::frame::{Frame, RgbPixels};
+use crate::frame::{CameraCalibration, Frame, RgbPixels};
 use crate::pipeline::{crop_rgb, scaled, CropTransform, DecodePlan};
 
 /// The camera image of a request, before its pixels are decoded.
@@ -63,22 +63,52 @@ pub fn scaled_decode_enabled() -> bool {
     *SCALED.get_or_init(|| std::env::var("POSEFUSE_DECODE").is_ok_and(|v| v.eq_ignore_ascii_case("scaled")))
 }
 
-/// The frame's image, header read and checked: `raw_image` (file bytes, as gRPC sends them)
-/// replaces `frame.image` (base64) when given; `pixels` (taken out of `frame.image_rgb`, so that
-/// they are not copied) are raw pixels.
+/// Encoded images that travel as bytes beside the frame (gRPC, KServe) rather than as base64 in
+/// it, in camera order: the single camera's, or each of the frame's `cameras`'. An empty entry
+/// is no image.
+#[derive(Debug, Clone, Default, PartialEq)]
+pub struct RawImages(pub Vec<Vec<u8>>);
+
+/// One camera's image as the request carries it, before its header is read.
+#[derive(Debug, Default)]
+pub struct ImageInput<'a> {
+    /// File bytes sent beside the frame; when given they replace `base64` (empty: no image).
+    pub raw: Option<Vec<u8>>,
+    /// Base64 of the file, from the JSON frame.
+    pub base64: Option<&'a str>,
+    /// Decoded pixels (moved out of the frame, so that they are not copied).
+    pub pixels: Option<RgbPixels>,
+}
+
+/// The single-camera frame's image, header read and checked: `raw_image` (file bytes, as gRPC
+/// sends them) replaces `frame.image` (base64) when given; `pixels` (taken out of
+/// `frame.image_rgb`, so that they are not copied) are raw pixels.
 pub fn open(frame: &Frame, raw_image: Option<Vec<u8>>, pixels: Option<RgbPixels>) -> Result<CameraImage> {
-    let c = &frame.calibration;
-    let encoded_given = raw_image.as_ref().is_some_and(|b| !b.is_empty()) || frame.image.is_some();
-    if let Some(px) = pixels.or_else(|| frame.image_rgb.clone()) {
+    let c = frame.calibration.as_ref().ok_or_else(|| Error::field("calibration", "required"))?;
+    let input = ImageInput {
+        raw: raw_image,
+        base64: frame.image.as_deref(),
+        pixels: pixels.or_else(|| frame.image_rgb.clone()),
+    };
+    open_camera(input, c)
+}
+
+/// One camera's image, header read and checked against its calibration `c`. Errors name the
+/// single-camera fields (`image`, `image_rgb`); a multi-camera caller names them within its
+/// camera (`Error::within`).
+pub fn open_camera(input: ImageInput<'_>, c: &CameraCalibration) -> Result<CameraImage> {
+    let ImageInput { raw, base64, pixels } = input;
+    let encoded_given = raw.as_ref().is_some_and(|b| !b.is_empty()) || base64.is_some();
+    if let Some(px) = pixels {
         if encoded_given {
             return Err(Error::field("image_rgb", "send either an encoded image or image_rgb pixels, not both"));
         }
         return px.into_image(c.width, c.height).map(CameraImage::Pixels);
     }
-    let bytes = match raw_image {
+    let bytes = match raw {
         Some(b) if b.is_empty() => return Ok(CameraImage::Absent),
         Some(b) => b,
-        None => match &frame.image {
+        None => match base64 {
             None => return Ok(CameraImage::Absent),
             Some(text) => match base64::engine::general_purpose::STANDARD.decode(text.as_bytes()) {
                 Ok(b) => b,

@@ -7,6 +7,7 @@
 pub mod error;
 pub mod eval;
 pub mod frame;
+mod frame_cameras;
 mod frame_points;
 pub mod geometry;
 pub mod image_decode;

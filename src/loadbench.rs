@@ -311,7 +311,9 @@ fn raw_inputs(models: &mut Models, bundle: &Bundle, frames: &[Frame]) -> anyhow:
     let h = cfg.heatmap_size as usize;
     let mut out = Vec::new();
     for frame in frames {
-        let camera = Camera::from_calibration(&frame.calibration)?;
+        let calibration =
+            frame.calibration.as_ref().ok_or_else(|| anyhow::anyhow!("a single-camera frame is needed"))?;
+        let camera = Camera::from_calibration(calibration)?;
         let points = frame.points.decode()?;
         let prepared: Vec<_> = frame
             .persons

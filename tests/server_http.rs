@@ -221,8 +221,13 @@ async fn health_models_metrics_and_openapi() {
     for path in ["/v1/poses", "/v1/poses:batch", "/v1/evaluate", "/healthz", "/readyz", "/v1/models", "/metrics"] {
         assert!(doc["paths"][path].is_object(), "{path} missing from the OpenAPI document");
     }
-    for schema in ["Frame", "PoseResponse", "ErrorBody", "MetricsReport", "BatchItem"] {
+    for schema in ["Frame", "FrameCamera", "PoseResponse", "ErrorBody", "MetricsReport", "BatchItem"] {
         assert!(doc["components"]["schemas"][schema].is_object(), "schema {schema} missing");
+    }
+    // several cameras per frame: the request's cameras, a person's and an answer's camera
+    let schemas = &doc["components"]["schemas"];
+    for (schema, field) in [("Frame", "cameras"), ("Person", "camera"), ("PersonPose", "camera")] {
+        assert!(schemas[schema]["properties"][field].is_object(), "{schema}.{field} missing");
     }
     let nf = c.get(s.url("/nope")).send().await.unwrap();
     assert_eq!(nf.status(), 404);

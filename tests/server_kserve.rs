@@ -72,7 +72,7 @@ fn tensors(f: &Frame, png: &[u8]) -> Vec<Tensor> {
         .collect();
     let m = f.persons.len() as i64;
     let ids: Vec<String> = f.persons.iter().map(|p| p.id.clone()).collect();
-    let c = &f.calibration;
+    let c = f.calibration.as_ref().unwrap();
     vec![
         bytes("image", vec![png.to_vec()], vec![base64::engine::general_purpose::STANDARD.encode(png)]),
         f32s("points", vec![pts.len() as i64 / 3, 3], &pts),

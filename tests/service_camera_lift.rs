@@ -36,7 +36,7 @@ async fn camera_mode_lifts_with_the_bundles_temperature() {
 
     // The same person through the pipeline's steps, one by one.
     let cfg = runtime.bundle().config().clone();
-    let camera = Camera::from_calibration(&frame.calibration).unwrap();
+    let camera = Camera::from_calibration(frame.calibration.as_ref().unwrap()).unwrap();
     let points = frame.points.decode().unwrap();
     let p = &frame.persons[0];
     let prepared = prepare_person(None, Some(&camera), &points, &p.box_3d, p.box_2d.as_ref(), &cfg);

@@ -240,7 +240,7 @@ fn fixture_frames_give_the_server_the_same_crops_and_points_as_the_shards() {
     let jpeg = base64::engine::general_purpose::STANDARD.decode(frame.image.as_ref().unwrap()).unwrap();
     let image = image::load_from_memory(&jpeg).unwrap().to_rgb8();
     assert_eq!((image.width(), image.height()), (1920, 1280));
-    let cam = Camera::from_calibration(&frame.calibration).unwrap();
+    let cam = Camera::from_calibration(frame.calibration.as_ref().unwrap()).unwrap();
     let points = frame.points.decode().unwrap();
     let mut sh = open_shard(dir);
     let (img, fidx, serve_xyz, serve_uv) =

@@ -71,6 +71,7 @@ mod tests {
     fn frames(n: usize) -> Vec<Frame> {
         let person = |h: f64| Person {
             id: "p".into(),
+            camera: None,
             box_2d: None,
             box_3d: Box3d {
                 center_x: 5.0,
@@ -88,7 +89,8 @@ mod tests {
                 frame_id: None,
                 image: None,
                 image_rgb: None,
-                calibration: CameraCalibration { intrinsic: vec![], extrinsic: vec![], width: 1, height: 1 },
+                calibration: Some(CameraCalibration { intrinsic: vec![], extrinsic: vec![], width: 1, height: 1 }),
+                cameras: Vec::new(),
                 points: Points::Flat(vec![]),
                 persons: vec![person(0.1 * i as f64), person(-1.0)],
                 mode: RequestedMode::Auto,

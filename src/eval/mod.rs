@@ -61,7 +61,6 @@ impl EvalAccumulator {
         if frame.persons.len() != resp.persons.len() + skipped.len() {
             return Err(Error::Runtime("response and request disagree on the number of persons".into()));
         }
-        let camera = Camera::from_calibration(&frame.calibration)?;
         let answered = frame.persons.iter().enumerate().filter(|(i, _)| !skipped.contains(i));
         self.skipped +=
             frame.persons.iter().enumerate().filter(|(i, p)| skipped.contains(i) && p.ground_truth.is_some()).count();
@@ -76,8 +75,11 @@ impl EvalAccumulator {
                 self.diagnostics.merge(&d);
                 self.diagnostics_by_mode.entry(pose.mode).or_default().merge(&d);
             }
-            if let (Some(k2), Some(b2)) = (&gt.keypoints_2d, person.box_2d.or(pose.box_2d)) {
-                one.add_projected(&camera, &pred, &k2.uv, &k2.visible, &b2)?;
+            // 2D labels are in the pixels of the person's camera: the single one, or the one of
+            // `cameras` it names (without a name they belong to no camera in particular)
+            let calibration = frame.calibration_of(person.camera.as_deref());
+            if let (Some(k2), Some(b2), Some(c)) = (&gt.keypoints_2d, person.box_2d.or(pose.box_2d), calibration) {
+                one.add_projected(&Camera::from_calibration(c)?, &pred, &k2.uv, &k2.visible, &b2)?;
             }
             self.all.merge(&one);
             self.by_mode.entry(pose.mode).or_default().merge(&one);

@@ -10,7 +10,8 @@ use tonic::{Request, Response, Status};
 use super::errors::grpc_status;
 use super::AppState;
 use crate::error::{Error, Result};
-use crate::frame::{Box2d, Box3d, CameraCalibration, Frame, Person, Points, RequestedMode, RgbPixels};
+use crate::frame::{Box2d, Box3d, CameraCalibration, Frame, FrameCamera, Person, Points, RequestedMode, RgbPixels};
+use crate::image_decode::RawImages;
 use crate::service::admission::Ticket;
 use crate::service::api::{Mode, PoseResponse};
 
@@ -91,9 +92,34 @@ fn mode_to_proto(m: Mode) -> proto::Mode {
     }
 }
 
-/// A gRPC request as a frame plus the raw image bytes.
-pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<Vec<u8>>)> {
-    let c = r.calibration.ok_or_else(|| Error::field("calibration", "required"))?;
+fn calibration_from_proto(c: proto::Calibration) -> CameraCalibration {
+    CameraCalibration { intrinsic: c.intrinsic, extrinsic: c.extrinsic, width: c.width, height: c.height }
+}
+
+fn calibration_to_proto(c: &CameraCalibration) -> proto::Calibration {
+    proto::Calibration {
+        intrinsic: c.intrinsic.clone(),
+        extrinsic: c.extrinsic.clone(),
+        width: c.width,
+        height: c.height,
+    }
+}
+
+/// Decoded pixels from a message's `image_rgb` fields, when any is set.
+fn rgb_from_proto(pixels: Vec<u8>, width: u32, height: u32) -> Option<RgbPixels> {
+    let given = !pixels.is_empty() || width != 0 || height != 0;
+    given.then_some(RgbPixels { width, height, pixels })
+}
+
+/// A gRPC request as a frame plus the raw image bytes (camera order).
+pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<RawImages>)> {
+    if !r.cameras.is_empty() && !r.image.is_empty() {
+        return Err(Error::field(
+            "cameras",
+            "given together with the single-camera `image`: send every camera inside `cameras`, or one camera \
+             without `cameras`",
+        ));
+    }
     if !r.points.len().is_multiple_of(12) {
         return Err(Error::field(
             "points",
@@ -106,6 +132,7 @@ pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<Vec<u
         let b = p.box_3d.ok_or_else(|| Error::field(format!("persons[{i}].box_3d"), "required"))?;
         persons.push(Person {
             id: p.id,
+            camera: (!p.camera.is_empty()).then_some(p.camera),
             box_2d: p.box_2d.map(|b| Box2d {
                 center_x: b.center_x,
                 center_y: b.center_y,
@@ -124,44 +151,68 @@ pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<Vec<u
             ground_truth: None,
         });
     }
-    let rgb_given = !r.image_rgb.is_empty() || r.image_rgb_width != 0 || r.image_rgb_height != 0;
-    let image_rgb =
-        rgb_given.then_some(RgbPixels { width: r.image_rgb_width, height: r.image_rgb_height, pixels: r.image_rgb });
+    let mut images = Vec::with_capacity(r.cameras.len().max(1));
+    let mut cameras = Vec::with_capacity(r.cameras.len());
+    for (i, c) in r.cameras.into_iter().enumerate() {
+        let calibration = c.calibration.ok_or_else(|| Error::field(format!("cameras[{i}].calibration"), "required"))?;
+        images.push(c.image);
+        cameras.push(FrameCamera {
+            name: c.name,
+            image: None,
+            image_rgb: rgb_from_proto(c.image_rgb, c.image_rgb_width, c.image_rgb_height),
+            calibration: calibration_from_proto(calibration),
+        });
+    }
+    if cameras.is_empty() {
+        images.push(r.image);
+    }
     let frame = Frame {
         frame_id: (!r.frame_id.is_empty()).then_some(r.frame_id),
         image: None,
-        image_rgb,
-        calibration: CameraCalibration {
-            intrinsic: c.intrinsic,
-            extrinsic: c.extrinsic,
-            width: c.width,
-            height: c.height,
-        },
+        image_rgb: rgb_from_proto(r.image_rgb, r.image_rgb_width, r.image_rgb_height),
+        calibration: r.calibration.map(calibration_from_proto),
+        cameras,
         points: Points::Flat(flat),
         persons,
         mode: mode_from_proto(r.mode)?,
     };
-    Ok((frame, Some(r.image)))
+    Ok((frame, Some(RawImages(images))))
 }
 
-/// A frame as its gRPC message, with the image as encoded bytes (empty: no image): the inverse
-/// of [`frame_from_proto`], for clients, benches and tests.
+/// A frame as its gRPC message, with the single camera's image as encoded bytes (empty: no
+/// image; each of `cameras` sends its own, from its base64): the inverse of
+/// [`frame_from_proto`], for clients, benches and tests.
 pub fn frame_to_proto(f: &Frame, image: Vec<u8>) -> Result<proto::PredictRequest> {
+    use base64::Engine;
+    let mut cameras = Vec::with_capacity(f.cameras.len());
+    for (i, c) in f.cameras.iter().enumerate() {
+        let image = match &c.image {
+            Some(text) => base64::engine::general_purpose::STANDARD
+                .decode(text.as_bytes())
+                .map_err(|e| Error::field(format!("cameras[{i}].image"), format!("not valid base64: {e}")))?,
+            None => Vec::new(),
+        };
+        cameras.push(proto::Camera {
+            name: c.name.clone(),
+            image,
+            calibration: Some(calibration_to_proto(&c.calibration)),
+            image_rgb: c.image_rgb.as_ref().map(|p| p.pixels.clone()).unwrap_or_default(),
+            image_rgb_width: c.image_rgb.as_ref().map_or(0, |p| p.width),
+            image_rgb_height: c.image_rgb.as_ref().map_or(0, |p| p.height),
+        });
+    }
     Ok(proto::PredictRequest {
         frame_id: f.frame_id.clone().unwrap_or_default(),
         image,
-        calibration: Some(proto::Calibration {
-            intrinsic: f.calibration.intrinsic.clone(),
-            extrinsic: f.calibration.extrinsic.clone(),
-            width: f.calibration.width,
-            height: f.calibration.height,
-        }),
+        calibration: f.calibration.as_ref().map(calibration_to_proto),
+        cameras,
         points: crate::frame::f32_to_le_bytes(&f.points.decode()?),
         persons: f
             .persons
             .iter()
             .map(|p| proto::Person {
                 id: p.id.clone(),
+                camera: p.camera.clone().unwrap_or_default(),
                 box_2d: p.box_2d.map(|b| proto::Box2d {
                     center_x: b.center_x,
                     center_y: b.center_y,
@@ -227,6 +278,7 @@ pub fn response_to_proto(r: PoseResponse) -> proto::PredictResponse {
                     })
                     .collect(),
                 facing: p.facing.map(|f| proto::Facing { yaw: f.yaw, confidence: f.confidence }),
+                camera: p.camera.unwrap_or_default(),
             })
             .collect(),
         skipped: r

@@ -60,6 +60,10 @@ pub struct ModelRef {
 pub struct PersonPose {
     /// The request's person id.
     pub id: String,
+    /// The `cameras` entry the person was seen with (its `box_2d`, crop and keypoint `uv` are in
+    /// that camera's pixels); absent for single-camera frames and when no camera sees the person.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<String>,
     /// The model path that ran.
     pub mode: Mode,
     /// Why this mode ran.

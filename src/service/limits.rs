@@ -23,6 +23,31 @@ pub fn check_declared_size(width: u32, height: u32) -> Result<()> {
     Ok(())
 }
 
+/// Cameras per frame (`cameras`). Each one a person uses is decoded, so with
+/// [`MAX_FRAME_PIXELS`] this bounds a frame's decoding.
+pub const MAX_CAMERAS: usize = 8;
+
+/// Declared pixels of all of a frame's cameras together: one image's limit, so that a frame of
+/// several cameras decodes no more than the largest single image may (they are decoded one after
+/// the other, but their crops are cut and held together).
+pub const MAX_FRAME_PIXELS: u64 = MAX_IMAGE_PIXELS;
+
+/// Checks every camera's declared size, and their sum, before anything is decoded.
+pub fn check_declared_sizes(frame: &crate::frame::Frame) -> Result<()> {
+    let mut total = 0u64;
+    for (_, at, c) in frame.camera_calibrations() {
+        check_declared_size(c.width, c.height).map_err(|e| e.within(&at))?;
+        total += c.width as u64 * c.height as u64;
+    }
+    if total > MAX_FRAME_PIXELS {
+        return Err(Error::field(
+            "cameras",
+            format!("the cameras' images are {total} pixels together; at most {MAX_FRAME_PIXELS} per frame"),
+        ));
+    }
+    Ok(())
+}
+
 /// Reads the encoded image's width and height from its header (no pixel decoding) and refuses a
 /// size that disagrees with the declared one. `Ok(false)`: the header is not readable (the
 /// caller reports the image as undecodable).
@@ -63,6 +88,12 @@ impl Default for FrameLimits {
 impl FrameLimits {
     /// Refuses a frame over a limit, naming the field, before its points are decoded.
     pub fn check(&self, frame: &crate::frame::Frame) -> Result<()> {
+        if frame.cameras.len() > MAX_CAMERAS {
+            return Err(Error::field(
+                "cameras",
+                format!("{} cameras; at most {MAX_CAMERAS} per frame", frame.cameras.len()),
+            ));
+        }
         if frame.persons.len() > self.max_persons {
             return Err(Error::field(
                 "persons",
@@ -153,5 +184,33 @@ mod tests {
         assert!(check_declared_size(1920, 1280).is_ok());
         assert!(check_declared_size(13_000, 13_000).is_err());
         assert!(check_declared_size(u32::MAX, 1).is_err());
+    }
+
+    fn frame_of_cameras(sizes: &[(u32, u32)]) -> crate::frame::Frame {
+        let cameras: Vec<serde_json::Value> = sizes
+            .iter()
+            .enumerate()
+            .map(|(i, (w, h))| {
+                serde_json::json!({"name": format!("c{i}"), "image": "", "calibration": {
+                    "intrinsic": [100.0, 100.0, 50.0, 40.0, 0, 0, 0, 0, 0],
+                    "extrinsic": [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1], "width": w, "height": h}})
+            })
+            .collect();
+        serde_json::from_value(serde_json::json!({"cameras": cameras, "points": [], "persons": []})).unwrap()
+    }
+
+    #[test]
+    fn several_cameras_share_one_pixel_limit_and_are_counted() {
+        // 5 cameras of 4096x3072 (12.6 Mpx each) fit in 64 Mi pixels, 6 do not
+        assert!(check_declared_sizes(&frame_of_cameras(&[(4096, 3072); 5])).is_ok());
+        let e = check_declared_sizes(&frame_of_cameras(&[(4096, 3072); 6])).unwrap_err();
+        assert_eq!(e.field_name(), Some("cameras"));
+        // one camera over the single-image limit is named
+        let e = check_declared_sizes(&frame_of_cameras(&[(640, 480), (13_000, 13_000)])).unwrap_err();
+        assert_eq!(e.field_name(), Some("cameras[1].calibration.width/height"));
+        let limits = FrameLimits::DEFAULT;
+        assert!(limits.check(&frame_of_cameras(&[(64, 48); MAX_CAMERAS])).is_ok());
+        let e = limits.check(&frame_of_cameras(&[(64, 48); MAX_CAMERAS + 1])).unwrap_err();
+        assert_eq!(e.field_name(), Some("cameras"));
     }
 }

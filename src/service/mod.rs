@@ -6,6 +6,7 @@
 
 pub mod admission;
 pub mod api;
+mod cameras;
 pub mod json;
 pub mod limits;
 pub mod policy;

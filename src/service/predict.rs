@@ -11,11 +11,12 @@ use super::admission::{Admission, Ticket};
 use super::api::{
     BatchItem, ErrorDetail, KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, SkippedPerson, Timings,
 };
+use super::cameras::FrameCameras;
 use super::policy::choose_mode;
 use crate::error::{Error, Result};
 use crate::frame::{Box2d, Frame, RgbPixels};
 use crate::geometry::{clip_to_image, overlaps_image, projected_box, BoxFrame, Camera};
-use crate::image_decode::{self, CameraImage};
+use crate::image_decode::{self, CameraImage, RawImages};
 use crate::keypoints::{K, NAMES, WAYMO_TYPES};
 use crate::pipeline::{
     decode_heatmaps, facing, fused_points, keypoints_to_vehicle, lidar_points, lift, normalize, plan_decode,
@@ -35,6 +36,8 @@ pub struct Predictor {
 /// Everything decided before inference for one person.
 struct PersonPlan {
     id: String,
+    /// Index of the camera the person uses (its `box_2d`, crop and keypoint pixels).
+    camera: Option<usize>,
     mode: Mode,
     reason: String,
     box_frame: BoxFrame,
@@ -46,7 +49,9 @@ struct PersonPlan {
 }
 
 struct FramePlan {
-    camera: Camera,
+    cameras: Vec<Camera>,
+    /// The cameras' names as responses give them (`None`: the single-camera form).
+    names: Vec<Option<String>>,
     persons: Vec<PersonPlan>,
     /// Persons no model can answer (their data, not the request, is lacking).
     skipped: Vec<SkippedPerson>,
@@ -111,12 +116,12 @@ impl Predictor {
         &self.admission
     }
 
-    /// Poses for every person of `frame`. `raw_image` (JPEG/PNG bytes, as gRPC sends them)
-    /// replaces `frame.image` (base64) when given. Dropping the future (deadline, client gone)
-    /// stops the frame's pre-processing at its next step and queues nothing more.
-    pub async fn predict(&self, frame: Frame, raw_image: Option<Vec<u8>>) -> Result<PoseResponse> {
+    /// Poses for every person of `frame`. `raw_images` (JPEG/PNG bytes, as gRPC sends them, in
+    /// camera order) replace the frame's base64 images when given. Dropping the future (deadline,
+    /// client gone) stops the frame's pre-processing at its next step and queues nothing more.
+    pub async fn predict(&self, frame: Frame, raw_images: Option<RawImages>) -> Result<PoseResponse> {
         let ticket = self.admission.admit()?;
-        self.predict_admitted(&ticket, frame, raw_image).await
+        self.predict_admitted(&ticket, frame, raw_images).await
     }
 
     /// [`Predictor::predict`] for a frame admitted before its body was read.
@@ -124,7 +129,7 @@ impl Predictor {
         &self,
         ticket: &Ticket,
         frame: Frame,
-        raw_image: Option<Vec<u8>>,
+        raw_images: Option<RawImages>,
     ) -> Result<PoseResponse> {
         let started = Instant::now();
         let runtime = self.runtime();
@@ -143,15 +148,14 @@ impl Predictor {
             let cfg = bundle.config();
             limits.check(&frame)?;
             let mut frame = frame;
-            let pixels = frame.image_rgb.take();
-            plan_frame(&frame, raw_image, pixels, cfg, &abandoned).map(|p| (p, frame.frame_id))
+            let pixels = frame.take_pixels();
+            plan_frame(&frame, raw_images, pixels, cfg, &abandoned).map(|p| (p, frame.frame_id))
         })
         .await
         .map_err(|e| Error::Runtime(format!("pre-processing task failed: {e}")))?;
         let (plan, frame_id) = plan?;
-        let camera = &plan.camera;
-        let on = OnRuntime { runtime: &runtime };
-        let results = futures::future::try_join_all(plan.persons.into_iter().map(|p| on.run_person(p, camera))).await?;
+        let on = OnRuntime { runtime: &runtime, cameras: &plan.cameras, names: &plan.names };
+        let results = futures::future::try_join_all(plan.persons.into_iter().map(|p| on.run_person(p))).await?;
         let mut timings =
             Timings { decode_ms: ms(plan.decode), preprocess_ms: ms(plan.preprocess), ..Timings::default() };
         let mut persons = Vec::with_capacity(results.len());
@@ -181,9 +185,9 @@ impl Predictor {
     }
 
     /// Admits the frame, then [`Predictor::answer_admitted`]: what every transport calls.
-    pub async fn answer(&self, frame: Frame, raw_image: Option<Vec<u8>>, timeout: Duration) -> Result<PoseResponse> {
+    pub async fn answer(&self, frame: Frame, raw_images: Option<RawImages>, timeout: Duration) -> Result<PoseResponse> {
         let ticket = self.admission.admit()?;
-        self.answer_admitted(&ticket, frame, raw_image, timeout).await
+        self.answer_admitted(&ticket, frame, raw_images, timeout).await
     }
 
     /// [`Predictor::predict_admitted`] with a deadline, counted in the metrics.
@@ -191,11 +195,11 @@ impl Predictor {
         &self,
         ticket: &Ticket,
         frame: Frame,
-        raw_image: Option<Vec<u8>>,
+        raw_images: Option<RawImages>,
         timeout: Duration,
     ) -> Result<PoseResponse> {
         let t0 = Instant::now();
-        let r = match tokio::time::timeout(timeout, self.predict_admitted(ticket, frame, raw_image)).await {
+        let r = match tokio::time::timeout(timeout, self.predict_admitted(ticket, frame, raw_images)).await {
             Ok(r) => r,
             Err(_) => Err(Error::Timeout(timeout.as_millis() as u64)),
         };
@@ -235,14 +239,16 @@ fn still_wanted(abandoned: &AtomicBool) -> Result<()> {
 /// A request's view of the runtime it started on.
 struct OnRuntime<'a> {
     runtime: &'a Runtime,
+    cameras: &'a [Camera],
+    names: &'a [Option<String>],
 }
 
 impl OnRuntime<'_> {
-    async fn run_person(&self, p: PersonPlan, camera: &Camera) -> Result<(PersonPose, PersonTimes)> {
+    async fn run_person(&self, p: PersonPlan) -> Result<(PersonPose, PersonTimes)> {
         let cfg = self.runtime.bundle().config();
         let (s, hm) = (cfg.image_size, cfg.heatmap_size as usize);
         let mut times = PersonTimes::default();
-        let PersonPlan { id, mode, reason, box_frame, box_2d, num_points, input, image_input } = p;
+        let PersonPlan { id, camera, mode, reason, box_frame, box_2d, num_points, input, image_input } = p;
         let need_crop = || Error::Runtime(format!("{id}: camera input missing"));
         let (local, scores): (Vec<[f32; 3]>, Option<Vec<f32>>) = match mode {
             Mode::Fusion => {
@@ -281,7 +287,11 @@ impl OnRuntime<'_> {
             return Err(Error::Runtime(format!("{id}: keypoint {} is not finite", NAMES[k])));
         }
         let vehicle = keypoints_to_vehicle(&local, &box_frame, cfg);
-        let pixels = camera.project_points(&vehicle);
+        let pixels = match camera.and_then(|c| self.cameras.get(c)) {
+            Some(cam) => cam.project_points(&vehicle),
+            None => vec![None; K],
+        };
+        let camera = camera.and_then(|c| self.names.get(c).cloned().flatten());
         let keypoints = (0..K)
             .map(|k| KeypointPose {
                 name: NAMES[k].to_string(),
@@ -292,7 +302,7 @@ impl OnRuntime<'_> {
             })
             .collect();
         let facing = facing(&vehicle);
-        let pose = PersonPose { id, mode, mode_reason: reason, num_points, box_2d, keypoints, facing };
+        let pose = PersonPose { id, camera, mode, mode_reason: reason, num_points, box_2d, keypoints, facing };
         Ok((pose, times))
     }
 }
@@ -321,41 +331,44 @@ fn check_box_size(b: &Box2d, field: &str, width: u32, height: u32) -> Result<()>
 
 fn plan_frame(
     frame: &Frame,
-    raw_image: Option<Vec<u8>>,
-    pixels: Option<RgbPixels>,
+    raw_images: Option<RawImages>,
+    pixels: Vec<Option<RgbPixels>>,
     cfg: &PipelineConfig,
     abandoned: &AtomicBool,
 ) -> Result<FramePlan> {
     frame.validate()?;
-    super::limits::check_declared_size(frame.calibration.width, frame.calibration.height)?;
-    let camera = Camera::from_calibration(&frame.calibration)?;
+    super::limits::check_declared_sizes(frame)?;
+    let mut cams = FrameCameras::new(frame, raw_images, pixels)?;
     let t0 = Instant::now();
     let points = frame.points.decode()?;
     if points.is_empty() {
         return Err(Error::field("points", "no LiDAR points: every mode needs the points of the persons' boxes"));
     }
     still_wanted(abandoned)?;
-    // the header only (its size checked against the calibration): the pixels are decoded once
-    // the crops are known
-    let image = image_decode::open(frame, raw_image, pixels)?;
+    // each person's camera, then the headers of the images someone uses (their sizes checked
+    // against the calibrations): the pixels are decoded once the crops are known
+    let chosen: Vec<Option<usize>> = frame.persons.iter().map(|p| cams.choose(p)).collect();
+    let mut images = cams.open_used(&chosen)?;
     let mut decode = t0.elapsed();
     let t1 = Instant::now();
     let mut persons = Vec::with_capacity(frame.persons.len());
     let mut crops: Vec<Option<CropTransform>> = Vec::with_capacity(frame.persons.len());
-    // every person's window, whatever its mode: the simulator plans its fixtures' decodes from
-    // all of them, so a crop is cut from the same decode in training and in serving
-    let mut windows = Vec::with_capacity(frame.persons.len());
-    let mut crop_budget = super::limits::CropBudget::for_image(camera.width, camera.height);
+    // every person's window on its camera, whatever its mode: the simulator plans its fixtures'
+    // decodes from all of them, so a crop is cut from the same decode in training and in serving
+    let mut windows: Vec<Vec<CropTransform>> = vec![Vec::new(); cams.cameras.len()];
+    let mut crop_budgets: Vec<_> =
+        cams.cameras.iter().map(|c| super::limits::CropBudget::for_image(c.width, c.height)).collect();
     let mut skipped = Vec::new();
     let mut skip = |index: usize, id: &str, e: Error| {
         metrics::counter!("posefuse_persons_skipped_total").increment(1);
         skipped.push(SkippedPerson { index, id: id.to_string(), error: ErrorDetail::from(&e) });
     };
-    for (i, person) in frame.persons.iter().enumerate() {
+    for (i, (person, &cam)) in frame.persons.iter().zip(&chosen).enumerate() {
         still_wanted(abandoned)?;
         let field = format!("persons[{i}]");
-        let box_2d = match &person.box_2d {
-            Some(b) => {
+        let camera = cam.and_then(|c| cams.cameras.get(c));
+        let box_2d = match (&person.box_2d, camera) {
+            (Some(b), Some(camera)) => {
                 if !overlaps_image(b, camera.width, camera.height) {
                     return Err(Error::field(
                         format!("{field}.box_2d"),
@@ -365,7 +378,7 @@ fn plan_frame(
                 check_box_size(b, &format!("{field}.box_2d"), camera.width, camera.height)?;
                 Some(*b)
             }
-            None => projected_box(&camera, &person.box_3d).map(|b| {
+            (None, Some(camera)) => projected_box(camera, &person.box_3d).map(|b| {
                 let (w, h) = (camera.width, camera.height);
                 if check_box_size(&b, "", w, h).is_ok() {
                     b
@@ -373,23 +386,32 @@ fn plan_frame(
                     clip_to_image(b, w, h)
                 }
             }),
+            // a box of a camera the person does not name (validation refuses it)
+            (_, None) => None,
         };
-        let prepared = prepare_person(None, Some(&camera), &points, &person.box_3d, box_2d.as_ref(), cfg);
-        windows.extend(prepared.crop);
+        let prepared = prepare_person(None, camera, &points, &person.box_3d, box_2d.as_ref(), cfg);
+        if let (Some(c), Some(t)) = (cam, prepared.crop) {
+            windows[c].push(t);
+        }
         let num_points = prepared.points.len();
         let Some(input) = prepared.input else {
             let why = format!("no LiDAR point lies inside the box (grown by {} m on every side)", cfg.box_margin);
             skip(i, &person.id, Error::InsufficientData { field: format!("{field}.box_3d"), message: why });
             continue;
         };
-        let camera_problem: Option<(String, String)> = match (&image, box_2d) {
-            (CameraImage::Absent, _) => Some(("image".into(), "no image in the request".into())),
-            (CameraImage::Undecodable(m), _) => Some(("image".into(), m.clone())),
-            (_, None) => Some((
+        let image = cam.and_then(|c| images.get(c));
+        let camera_problem: Option<(String, String)> = match (cam, image, box_2d) {
+            (Some(c), Some(CameraImage::Absent), _) => Some((cams.field(c, "image"), "no image in the request".into())),
+            (Some(c), Some(CameraImage::Undecodable(m)), _) => Some((cams.field(c, "image"), m.clone())),
+            (None, _, _) => Some((
+                format!("{field}.box_2d"),
+                "no 2D box given and the projected 3D box is outside the view of every camera".into(),
+            )),
+            (_, _, None) => Some((
                 format!("{field}.box_2d"),
                 "no 2D box given and the projected 3D box is outside the camera view".into(),
             )),
-            (_, Some(_)) => None,
+            (_, _, Some(_)) => None,
         };
         let (mode, reason) = choose_mode(frame.mode, camera_problem, num_points, cfg.min_points as usize)?;
         if mode == Mode::Camera && !input.uv.iter().any(|uv| uv[0].is_finite() && uv[1].is_finite()) {
@@ -397,19 +419,21 @@ fn plan_frame(
             skip(i, &person.id, Error::InsufficientData { field: format!("{field}.box_3d"), message: why.into() });
             continue;
         }
-        let crop = match (mode, image.usable(), prepared.crop) {
-            (Mode::Fusion | Mode::Camera, true, Some(t)) => {
-                crop_budget.spend(t.side(), &field)?;
+        let usable = image.is_some_and(CameraImage::usable);
+        let crop = match (mode, usable, cam, prepared.crop) {
+            (Mode::Fusion | Mode::Camera, true, Some(c), Some(t)) => {
+                crop_budgets[c].spend(t.side(), &field)?;
                 Some(t)
             }
-            (Mode::Fusion | Mode::Camera, _, _) => {
+            (Mode::Fusion | Mode::Camera, _, _, _) => {
                 return Err(Error::Runtime(format!("{field}: camera mode chosen without a crop")));
             }
-            (Mode::Lidar, _, _) => None,
+            (Mode::Lidar, _, _, _) => None,
         };
         crops.push(crop);
         persons.push(PersonPlan {
             id: person.id.clone(),
+            camera: cam,
             mode,
             reason,
             box_frame: prepared.box_frame,
@@ -419,35 +443,42 @@ fn plan_frame(
             image_input: None,
         });
     }
-    // Decode only what the crops need (`pipeline::plan_decode`), then cut them.
+    // Per camera, decode only what its crops need (`pipeline::plan_decode`), then cut them; one
+    // decoded image is held at a time.
     let mut decode_pixels = Duration::ZERO;
-    if crops.iter().any(Option::is_some) {
+    for (c, camera) in cams.cameras.iter().enumerate() {
+        let crops_here = || persons.iter().zip(&crops).filter(move |(p, t)| p.camera == Some(c) && t.is_some());
+        if crops_here().next().is_none() {
+            continue;
+        }
         still_wanted(abandoned)?;
+        let image = std::mem::replace(&mut images[c], CameraImage::Absent);
         let t2 = Instant::now();
-        let decoded = image_decode::decode(image, &plan_decode(&windows, camera.width, camera.height));
-        decode_pixels = t2.elapsed();
+        let decoded = image_decode::decode(image, &plan_decode(&windows[c], camera.width, camera.height));
+        decode_pixels += t2.elapsed();
+        let here = persons.iter_mut().zip(&crops).filter(|(p, t)| p.camera == Some(c) && t.is_some());
         match decoded {
             Ok(img) => {
-                for (p, t) in persons.iter_mut().zip(&crops) {
+                for (p, t) in here {
                     still_wanted(abandoned)?;
                     p.image_input = t.map(|t| normalize(&img.crop(&t), cfg));
                 }
             }
             // the header was sound but the pixels are not
             Err(why) if frame.mode == crate::frame::RequestedMode::Auto => {
-                for (p, t) in persons.iter_mut().zip(&crops) {
-                    if t.is_some() {
-                        (p.mode, p.reason) = (Mode::Lidar, format!("camera unusable: {why}"));
-                    }
+                for (p, _) in here {
+                    (p.mode, p.reason) = (Mode::Lidar, format!("camera unusable: {why}"));
                 }
             }
             Err(why) => {
-                return Err(Error::field("image", format!("mode {:?} needs the camera: {why}", frame.mode)));
+                let field = cams.field(c, "image");
+                return Err(Error::field(field, format!("mode {:?} needs the camera: {why}", frame.mode)));
             }
         }
     }
     decode += decode_pixels;
-    Ok(FramePlan { camera, persons, skipped, decode, preprocess: t1.elapsed().saturating_sub(decode_pixels) })
+    let FrameCameras { cameras, names, .. } = cams;
+    Ok(FramePlan { cameras, names, persons, skipped, decode, preprocess: t1.elapsed().saturating_sub(decode_pixels) })
 }
 
 #[cfg(test)]

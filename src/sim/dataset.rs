@@ -258,6 +258,7 @@ pub fn simulate_frame(
         if with_fixture {
             fixture_persons.push(Person {
                 id: format!("p{li}"),
+                camera: None,
                 box_2d: Some(labels.box2d),
                 box_3d: p.box3d,
                 ground_truth: Some(GroundTruth {
@@ -276,7 +277,8 @@ pub fn simulate_frame(
             frame_id: Some(format!("sim-{seed}-{index:06}")),
             image: Some(base64::engine::general_purpose::STANDARD.encode(jpeg)),
             image_rgb: None,
-            calibration: calib,
+            calibration: Some(calib),
+            cameras: Vec::new(),
             points: Points::encode(&points),
             persons: fixture_persons,
             mode: RequestedMode::Auto,

@@ -96,7 +96,8 @@ pub fn frame_overview(frame: &crate::frame::Frame) -> crate::Result<RgbImage> {
         .decode(frame.image.as_deref().unwrap_or_default())
         .map_err(|e| crate::Error::Io(format!("fixture image: {e}")))?;
     let full = super::dataset::decode_jpeg(&bytes)?;
-    let cam = crate::geometry::Camera::from_calibration(&frame.calibration)?;
+    let calibration = frame.calibration.as_ref().ok_or_else(|| crate::Error::field("calibration", "required"))?;
+    let cam = crate::geometry::Camera::from_calibration(calibration)?;
     let mut img =
         image::imageops::resize(&full, full.width() / 2, full.height() / 2, image::imageops::FilterType::Triangle);
     for p in frame.points.decode()? {

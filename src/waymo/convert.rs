@@ -270,6 +270,7 @@ fn process_frame(
             }
             persons.push(Person {
                 id: p.id.clone(),
+                camera: None,
                 box_2d: Some(c.box2d),
                 box_3d: p.box3d,
                 ground_truth: ground_truth(k3, c.keypoints.as_ref()),
@@ -284,7 +285,8 @@ fn process_frame(
                     frame_id: Some(format!("{}/{}/{cam_name}", seg.name, f.timestamp)),
                     image: Some(base64::engine::general_purpose::STANDARD.encode(jpeg)),
                     image_rgb: None,
-                    calibration: cam.to_calibration(),
+                    calibration: Some(cam.to_calibration()),
+                    cameras: Vec::new(),
                     points: Points::encode(&near_boxes(&points, &boxes)),
                     persons,
                     mode: RequestedMode::Auto,
@@ -307,12 +309,14 @@ fn process_frame(
                 frame_id: Some(format!("{}/{}/lidar", seg.name, f.timestamp)),
                 image: None,
                 image_rgb: None,
-                calibration,
+                calibration: Some(calibration),
+                cameras: Vec::new(),
                 points: Points::encode(&near_boxes(&points, &boxes)),
                 persons: rest
                     .iter()
                     .map(|p| Person {
                         id: p.id.clone(),
+                        camera: None,
                         box_2d: None,
                         box_3d: p.box3d,
                         ground_truth: ground_truth(labels.lidar_keypoints.get(&p.id), None),

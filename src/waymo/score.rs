@@ -5,7 +5,8 @@
 //!
 //! Predictions come from the in-process predictor or from a running server (`--server`).
 //! Each pedestrian is predicted once per frame: with the camera whose associated box is the
-//! largest, or from the LiDAR alone when no camera box is associated with it.
+//! largest (all of a frame's cameras in one request, each person naming its camera), or from the
+//! LiDAR alone when no camera box is associated with it.
 
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -19,7 +20,7 @@ use super::reader::{FrameData, FrameLabels, Segment};
 use super::schema::{comp, key};
 use super::sim::write_lidar_keypoints;
 use super::table::{read_columns, Columns, ComponentWriter};
-use crate::frame::{Box3d, Frame, Person, Points, RequestedMode};
+use crate::frame::{Box3d, Frame, FrameCamera, Person, Points, RequestedMode};
 use crate::geometry::Camera;
 use crate::keypoints::K;
 use crate::metrics::{box_scale_3d, evaluate_person_partial, MetricsAccumulator, MetricsReport};
@@ -124,7 +125,13 @@ pub fn scoring_requests(
             .filter(|c| c.laser_object.as_deref() == Some(p.id.as_str()) && cameras.contains_key(&c.camera))
             .filter(|c| f.images.contains_key(&c.camera))
             .max_by(|a, b| (a.box2d.width * a.box2d.height).total_cmp(&(b.box2d.width * b.box2d.height)));
-        let person = Person { id: p.id.clone(), box_2d: best.map(|c| c.box2d), box_3d: p.box3d, ground_truth: None };
+        let person = Person {
+            id: p.id.clone(),
+            camera: None,
+            box_2d: best.map(|c| c.box2d),
+            box_3d: p.box3d,
+            ground_truth: None,
+        };
         match best {
             Some(c) => by_camera.entry(c.camera).or_default().push(person),
             None => lidar_only.push(person),
@@ -132,15 +139,29 @@ pub fn scoring_requests(
     }
     let mut out = Vec::new();
     let boxes = |ps: &[Person]| ps.iter().map(|p| p.box_3d).collect::<Vec<Box3d>>();
+    // the cameras that show a pedestrian go in one request, each person naming its camera
+    let mut seen = Vec::new();
+    let mut frame_cameras = Vec::with_capacity(by_camera.len());
     for (cam, persons) in by_camera {
         use base64::Engine;
-        out.push(Frame {
-            frame_id: Some(format!("{}/{}/{cam}", seg.name, f.timestamp)),
+        let name = camera_name(cam);
+        frame_cameras.push(FrameCamera {
+            name: name.clone(),
             image: f.images.get(&cam).map(|j| base64::engine::general_purpose::STANDARD.encode(j)),
             image_rgb: None,
             calibration: cameras[&cam].to_calibration(),
-            points: Points::encode(&near_boxes(&points, &boxes(&persons))),
-            persons,
+        });
+        seen.extend(persons.into_iter().map(|p| Person { camera: Some(name.clone()), ..p }));
+    }
+    if !seen.is_empty() {
+        out.push(Frame {
+            frame_id: Some(format!("{}/{}/cameras", seg.name, f.timestamp)),
+            image: None,
+            image_rgb: None,
+            calibration: None,
+            cameras: frame_cameras,
+            points: Points::encode(&near_boxes(&points, &boxes(&seen))),
+            persons: seen,
             mode: RequestedMode::Auto,
         });
     }
@@ -153,13 +174,20 @@ pub fn scoring_requests(
             frame_id: Some(format!("{}/{}/lidar", seg.name, f.timestamp)),
             image: None,
             image_rgb: None,
-            calibration,
+            calibration: Some(calibration),
+            cameras: Vec::new(),
             points: Points::encode(&near_boxes(&points, &boxes(&lidar_only))),
             persons: lidar_only,
             mode: RequestedMode::Auto,
         });
     }
     Ok(out)
+}
+
+/// A camera's name in requests: Waymo's (`FRONT`, ...), else its number.
+fn camera_name(cam: i64) -> String {
+    let known = usize::try_from(cam - 1).ok().and_then(|i| super::schema::CAMERA_NAMES.get(i));
+    known.map_or_else(|| cam.to_string(), |n| n.to_string())
 }
 
 /// What a scoring run did.

@@ -125,7 +125,7 @@ pub fn ground_truth(b: &Box3d) -> GroundTruth {
 
 /// A person in view with plenty of points (fusion), given the box.
 pub fn person(id: &str, b: Box3d, with_box_2d: bool) -> Person {
-    Person { id: id.into(), box_2d: with_box_2d.then(|| box_2d(&b)), box_3d: b, ground_truth: None }
+    Person { id: id.into(), camera: None, box_2d: with_box_2d.then(|| box_2d(&b)), box_3d: b, ground_truth: None }
 }
 
 /// One frame with one person in front of the camera, image and 300 points: fusion in auto mode.
@@ -135,7 +135,8 @@ pub fn fusion_frame() -> Frame {
         frame_id: Some("f-1".into()),
         image: Some(image_b64(&[box_2d(&b)])),
         image_rgb: None,
-        calibration: calibration(),
+        calibration: Some(calibration()),
+        cameras: Vec::new(),
         points: Points::encode(&points_in(&b, 300)),
         persons: vec![person("ped-1", b, true)],
         mode: RequestedMode::Auto,
@@ -155,7 +156,8 @@ pub fn three_mode_frame() -> Frame {
         frame_id: Some("f-3".into()),
         image: Some(image_b64(&[box_2d(&a), box_2d(&c)])),
         image_rgb: None,
-        calibration: calibration(),
+        calibration: Some(calibration()),
+        cameras: Vec::new(),
         points: Points::encode(&pts),
         persons: vec![person("near", a, true), person("behind", b, false), person("sparse", c, false)],
         mode: RequestedMode::Auto,

@@ -116,15 +116,20 @@ class GroundTruth:
 
 @dataclass
 class Person:
-    """A person to estimate: id, 3D box, and the 2D box when known (else the projected 3D box)."""
+    """A person to estimate: id, 3D box, and the 2D box when known (else the projected 3D box).
+    camera: in a frame with `cameras`, the name of the one to use (required with box_2d); None:
+    the server takes the camera that sees the 3D box best."""
 
     id: str
     box_3d: Box3d
     box_2d: Box2d | None = None
     ground_truth: GroundTruth | None = None
+    camera: str | None = None
 
     def to_json(self) -> dict[str, Any]:
         out: dict[str, Any] = {"id": self.id, "box_3d": self.box_3d.to_json()}
+        if self.camera is not None:
+            out["camera"] = self.camera
         if self.box_2d is not None:
             out["box_2d"] = self.box_2d.to_json()
         if self.ground_truth is not None:
@@ -138,23 +143,56 @@ class Person:
             box_3d=Box3d.from_json(d["box_3d"]),
             box_2d=Box2d.from_json(d["box_2d"]) if d.get("box_2d") is not None else None,
             ground_truth=GroundTruth.from_json(d["ground_truth"]) if d.get("ground_truth") is not None else None,
+            camera=d.get("camera"),
         )
 
 
 @dataclass
-class Frame:
-    """One camera frame and its LiDAR sweep.
+class Camera:
+    """One camera of a frame with several: a unique name, its calibration and its image (encoded
+    JPEG/PNG bytes, or a uint8 array [H, W, 3] sent as PNG)."""
 
+    name: str
+    calibration: Calibration
+    image: bytes | np.ndarray
+
+    def to_json(self) -> dict[str, Any]:
+        return {
+            "name": self.name,
+            "image": base64.b64encode(image_bytes(self.image) or b"").decode("ascii"),
+            "calibration": self.calibration.to_json(),
+        }
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> Camera:
+        return cls(d["name"], Calibration.from_json(d["calibration"]), base64.b64decode(d.get("image") or ""))
+
+    def to_proto(self):
+        from . import _proto as pb
+
+        return pb.Camera(name=self.name, image=image_bytes(self.image) or b"",
+                         calibration=pb.Calibration(**self.calibration.to_json()))
+
+
+@dataclass
+class Frame:
+    """One LiDAR sweep with one camera frame, or with several (`cameras`).
+
+    calibration: the single camera's (None with `cameras`).
     points: [N, 3] x, y, z in the vehicle frame (metres); sent as little-endian float32.
-    image: encoded JPEG/PNG bytes, or a uint8 array [H, W, 3] (sent as PNG); None: LiDAR only.
+    image: the single camera's encoded JPEG/PNG bytes, or a uint8 array [H, W, 3] (sent as PNG);
+    None: LiDAR only (or `cameras`).
+    cameras: several cameras of the same instant instead of calibration and image; each person
+    uses the one it names, else the one that sees it best (`PersonPose.camera` says which).
     """
 
-    calibration: Calibration
+    calibration: Calibration | None
     points: np.ndarray
     persons: list[Person]
     image: bytes | np.ndarray | None = None
     frame_id: str | None = None
     mode: Mode = "auto"
+    cameras: list[Camera] | None = None
 
     def points_bytes(self) -> bytes:
         pts = np.asarray(self.points, dtype="<f4")
@@ -170,7 +208,10 @@ class Frame:
         img = image_bytes(self.image)
         if img is not None:
             out["image"] = base64.b64encode(img).decode("ascii")
-        out["calibration"] = self.calibration.to_json()
+        if self.calibration is not None:
+            out["calibration"] = self.calibration.to_json()
+        if self.cameras:
+            out["cameras"] = [c.to_json() for c in self.cameras]
         out["points"] = {"b64": base64.b64encode(self.points_bytes()).decode("ascii")}
         out["persons"] = [p.to_json() for p in self.persons]
         if self.mode != "auto":
@@ -186,35 +227,38 @@ class Frame:
         else:
             points = np.asarray(pts, dtype=np.float32).reshape(-1, 3)
         return cls(
-            calibration=Calibration.from_json(d["calibration"]),
+            calibration=Calibration.from_json(d["calibration"]) if d.get("calibration") is not None else None,
             points=points,
             persons=[Person.from_json(p) for p in d["persons"]],
             image=base64.b64decode(d["image"]) if d.get("image") else None,
             frame_id=d.get("frame_id"),
             mode=d.get("mode", "auto"),
+            cameras=[Camera.from_json(c) for c in d["cameras"]] if d.get("cameras") else None,
         )
 
     def to_proto(self):
         """The gRPC PredictRequest (ground truth is not part of it)."""
         from . import _proto as pb
 
-        c = self.calibration.to_json()
         persons = []
         for p in self.persons:
-            person = pb.Person(id=p.id, box_3d=pb.Box3d(**p.box_3d.to_json()))
+            person = pb.Person(id=p.id, box_3d=pb.Box3d(**p.box_3d.to_json()), camera=p.camera or "")
             if p.box_2d is not None:
                 person.box_2d.CopyFrom(pb.Box2d(**p.box_2d.to_json()))
             persons.append(person)
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        return pb.PredictRequest(
+        request = pb.PredictRequest(
             frame_id=self.frame_id or "",
             image=image_bytes(self.image) or b"",
-            calibration=pb.Calibration(**c),
+            cameras=[c.to_proto() for c in self.cameras or []],
             points=self.points_bytes(),
             persons=persons,
             mode=MODES.index(self.mode),
         )
+        if self.calibration is not None:
+            request.calibration.CopyFrom(pb.Calibration(**self.calibration.to_json()))
+        return request
 
 
 @dataclass
@@ -244,7 +288,9 @@ class PersonPose:
     """One person's pose.
 
     keypoints_3d: [13, 3] vehicle frame, metres. keypoints_2d: [13, 2] image pixels, NaN where a
-    keypoint does not project. scores: [13] heatmap peaks, NaN when no camera ran.
+    keypoint does not project. scores: [13] heatmap peaks, NaN when no camera ran. camera: the
+    request camera whose pixels box_2d and keypoints_2d are in (None: a single-camera frame, or
+    no camera sees the person).
     """
 
     id: str
@@ -258,6 +304,7 @@ class PersonPose:
     scores: np.ndarray
     box_2d: Box2d | None = None
     facing: Facing | None = None
+    camera: str | None = None
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> PersonPose:
@@ -276,6 +323,7 @@ class PersonPose:
             scores=np.array([k["score"] if k.get("score") is not None else nan for k in kps], dtype=np.float64),
             box_2d=Box2d.from_json(d["box_2d"]) if d.get("box_2d") is not None else None,
             facing=Facing(float(d["facing"]["yaw"]), float(d["facing"]["confidence"])) if d.get("facing") else None,
+            camera=d.get("camera"),
         )
 
     @classmethod
@@ -292,6 +340,7 @@ class PersonPose:
             keypoints_2d=np.array([(k.u, k.v) for k in kps], dtype=np.float64).reshape(-1, 2),
             scores=np.array([k.score for k in kps], dtype=np.float64),
             facing=Facing(p.facing.yaw, p.facing.confidence) if p.HasField("facing") else None,
+            camera=p.camera or None,
         )
 
 

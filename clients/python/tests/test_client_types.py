@@ -7,7 +7,7 @@ import zlib
 import numpy as np
 import pytest
 
-from posefuse_client import Frame, PosefuseError, PoseResponse, encode_png
+from posefuse_client import Camera, Frame, PersonPose, PosefuseError, PoseResponse, encode_png
 from posefuse_client.errors import grpc_message_code
 
 
@@ -120,3 +120,27 @@ def test_response_without_camera_has_nan_uv_and_scores():
     assert r.timings.total_ms == 6 and r.skipped == []
     with pytest.raises(KeyError):
         r.person("b")
+
+
+def test_a_frame_of_several_cameras_converts_to_json_and_proto(frame_json):
+    single = Frame.from_json(frame_json)
+    cameras = [Camera("front", single.calibration, single.image), Camera("left", single.calibration, b"\x89PNG")]
+    frame = Frame(None, single.points, single.persons, cameras=cameras)
+    frame.persons[0].camera = "left"
+    body = frame.to_json()
+    assert "calibration" not in body and "image" not in body
+    assert [c["name"] for c in body["cameras"]] == ["front", "left"]
+    assert body["persons"][0]["camera"] == "left" and "camera" not in body["persons"][1]
+    again = Frame.from_json(body)
+    assert again.calibration is None and again.cameras == cameras and again.persons[0].camera == "left"
+    proto = frame.to_proto()
+    assert not proto.HasField("calibration") and proto.image == b""
+    assert [(c.name, c.image) for c in proto.cameras] == [("front", single.image), ("left", b"\x89PNG")]
+    assert proto.cameras[1].calibration.width == single.calibration.width
+    assert proto.persons[0].camera == "left" and proto.persons[1].camera == ""
+
+
+def test_the_camera_a_person_was_seen_with_is_read_back():
+    pose = {"id": "p", "camera": "left", "mode": "fusion", "mode_reason": "", "num_points": 3, "keypoints": []}
+    assert PersonPose.from_json(pose).camera == "left"
+    assert PersonPose.from_json(dict(pose, camera=None)).camera is None

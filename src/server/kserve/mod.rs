@@ -12,6 +12,7 @@ use std::sync::atomic::Ordering;
 
 use super::AppState;
 use crate::error::{Error, Result};
+use crate::image_decode::RawImages;
 use tensors::{InputTensor, OutputTensor, RequestedOutput};
 
 /// Server name in server metadata.
@@ -72,7 +73,11 @@ pub async fn infer(state: &AppState, req: InferRequest) -> Result<InferResponse>
     tensors::check_requested(req.outputs.as_deref())?;
     let (frame, image) = tensors::frame_from_inputs(req.inputs, req.id.clone())?;
     let m = frame.persons.len();
-    let resp = state.predictor.answer(frame, image, state.request_timeout).await.map_err(tensors::rename_error)?;
+    let resp = state
+        .predictor
+        .answer(frame, image.map(|b| RawImages(vec![b])), state.request_timeout)
+        .await
+        .map_err(tensors::rename_error)?;
     let all = tensors::outputs_from_response(&resp, m)?;
     let outputs = tensors::select_outputs(all, req.outputs.as_deref(), req.binary_output)?;
     Ok(InferResponse { model_name, model_version, id: req.id, outputs })

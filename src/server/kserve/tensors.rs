@@ -562,10 +562,18 @@ pub fn frame_from_inputs(inputs: Vec<InputTensor>, frame_id: Option<String>) -> 
             height: r[5],
             heading: r[6],
         };
-        persons.push(Person { id, box_2d, box_3d, ground_truth: None });
+        persons.push(Person { id, camera: None, box_2d, box_3d, ground_truth: None });
     }
-    let frame =
-        Frame { frame_id, image: None, image_rgb: None, calibration, points: Points::Flat(flat), persons, mode };
+    let frame = Frame {
+        frame_id,
+        image: None,
+        image_rgb: None,
+        calibration: Some(calibration),
+        cameras: Vec::new(),
+        points: Points::Flat(flat),
+        persons,
+        mode,
+    };
     // Checked here so that errors name the tensor rather than the frame's field.
     frame.validate().map_err(rename_error)?;
     Ok((frame, image))
@@ -768,8 +776,9 @@ mod tests {
         assert_eq!(image, None);
         assert_eq!(f.frame_id.as_deref(), Some("req-1"));
         assert_eq!(f.points.decode().unwrap(), vec![[8.0, 0.5, 0.9], [8.1, 0.4, 1.0]]);
-        assert_eq!((f.calibration.width, f.calibration.height), (640, 480));
-        assert_eq!(f.calibration.extrinsic, identity());
+        let c = f.calibration.as_ref().unwrap();
+        assert_eq!((c.width, c.height), (640, 480));
+        assert_eq!(c.extrinsic, identity());
         assert_eq!(f.persons.len(), 2);
         assert_eq!((f.persons[0].id.as_str(), f.persons[1].id.as_str()), ("0", "1"));
         assert_eq!(f.persons[1].box_3d.center_y, -1.5);
@@ -928,6 +937,7 @@ mod tests {
     fn pose(id: &str, mode: Mode, behind: bool) -> PersonPose {
         PersonPose {
             id: id.into(),
+            camera: None,
             mode,
             mode_reason: String::new(),
             num_points: 42,
