@@ -2,16 +2,21 @@
 //!
 //! Requests allocate crops, decoded images and tensors of a few hundred KB to a few MB; the system
 //! allocator maps and unmaps them each time (a page fault per 4 KB), mimalloc keeps them for reuse.
-//! Its default purge delay (10 ms) is only acted on by the next allocation of the thread that
-//! freed the memory, so after a burst the idle workers keep what the burst needed for as long as
+//! Its default purge delay (1 s in the bundled v3) is only acted on by later allocator calls of
+//! the thread that freed the memory, so after a burst the idle workers keep what the burst needed for as long as
 //! they stay idle (744 MB 30 s after a 256-client overload, docs/OPERATIONS.md, "Memory").
 
-/// `mi_option_purge_delay`'s place in mimalloc's `mi_option_e` (the bundled v3 `mimalloc.h`):
-/// milliseconds before freed memory is purged; 0 purges at once.
+/// `mi_option_purge_delay`'s place in mimalloc's `mi_option_e` (the bundled v3 `mimalloc.h`;
+/// `options.c` gives its default, 1000): milliseconds before freed memory is purged; 0 purges at
+/// once.
 const MI_OPTION_PURGE_DELAY: libmimalloc_sys::mi_option_t = 15;
 
-/// Purge freed memory at once instead of after the default delay.
+/// Purge freed memory at once instead of after the default delay, unless the environment sets
+/// the delay itself (`MIMALLOC_PURGE_DELAY`, docs/OPERATIONS.md).
 pub fn purge_freed_memory_at_once() {
+    if std::env::var_os("MIMALLOC_PURGE_DELAY").is_some() {
+        return;
+    }
     // SAFETY: mi_option_set stores one integer; mimalloc reads it on its next purge decision.
     unsafe { libmimalloc_sys::mi_option_set(MI_OPTION_PURGE_DELAY, 0) }
 }
@@ -34,7 +39,7 @@ mod tests {
     #[test]
     #[cfg(target_os = "linux")]
     fn freed_memory_leaves_the_process_without_further_allocation() {
-        assert_eq!(unsafe { libmimalloc_sys::mi_option_get(MI_OPTION_PURGE_DELAY) }, 10, "mimalloc's default");
+        assert_eq!(unsafe { libmimalloc_sys::mi_option_get(MI_OPTION_PURGE_DELAY) }, 1000, "mimalloc's default");
         purge_freed_memory_at_once();
         let before = rss();
         let (freed_tx, freed_rx) = std::sync::mpsc::channel();
