@@ -11,6 +11,9 @@ import dataclasses
 from dataclasses import dataclass, field
 
 
+NOMINAL_LIDAR_ORIGIN = [1.43, 0.0, 2.12]
+
+
 @dataclass
 class PipelineConfig:
     image_size: int = 256
@@ -25,7 +28,7 @@ class PipelineConfig:
     rotate_by_heading: bool = True
     # The point networks' frame (src/pipeline/config.rs `PointFrame`); None: after rotate_by_heading.
     frame: str | None = None
-    view_origin: list[float] = field(default_factory=lambda: [1.43, 0.0, 2.12])
+    view_origin: list[float] = field(default_factory=lambda: list(NOMINAL_LIDAR_ORIGIN))
     lift_temperature: float = 2000.0
     min_points: int = 8
 
@@ -49,8 +52,12 @@ class PipelineConfig:
 
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
+        # Written as the server writes them: `frame` only for the view frame, `view_origin` only
+        # when not the nominal one (src/pipeline/config.rs).
         if d["frame"] is None:
             del d["frame"]
+        if d["view_origin"] == NOMINAL_LIDAR_ORIGIN:
+            del d["view_origin"]
         d["mean"] = [float(x) for x in d["mean"]]
         d["std"] = [float(x) for x in d["std"]]
         return d

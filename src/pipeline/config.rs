@@ -25,6 +25,10 @@ fn nominal_lidar_origin() -> [f64; 3] {
     NOMINAL_LIDAR_ORIGIN
 }
 
+fn is_nominal_lidar_origin(o: &[f64; 3]) -> bool {
+    *o == NOMINAL_LIDAR_ORIGIN
+}
+
 /// Every size, constant and switch of the pre-processing pipeline.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
@@ -50,11 +54,12 @@ pub struct PipelineConfig {
     /// Rotate point coordinates by −heading so they are expressed in the box frame. Bundles older
     /// than `frame` say only this; with `frame` present it must agree (true ⇔ `box_heading`).
     pub rotate_by_heading: bool,
-    /// The point networks' frame; absent: `box_heading` or `centred` after `rotate_by_heading`.
+    /// The point networks' frame; absent: `box_heading` or `centred` after `rotate_by_heading`
+    /// (the form [`PipelineConfig::in_frame`] writes for them, so their files stay as they were).
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub frame: Option<PointFrame>,
-    /// Vehicle-frame start of the view frame's ray (metres).
-    #[serde(default = "nominal_lidar_origin")]
+    /// Vehicle-frame start of the view frame's ray (metres); written only when not the nominal one.
+    #[serde(default = "nominal_lidar_origin", skip_serializing_if = "is_nominal_lidar_origin")]
     pub view_origin: [f64; 3],
     /// Temperature T of eq. 1 (camera-only lifting and pseudo labels): α ∝ exp(−T·d²) with d the
     /// 2D distance in model-input pixels divided by `image_size`, so T does not depend on S.
@@ -90,9 +95,14 @@ impl PipelineConfig {
         PipelineConfig { image_size, heatmap_size: image_size / 4, ..Self::default() }
     }
 
-    /// The same configuration with the point networks in `frame`.
+    /// The same configuration with the point networks in `frame`. `frame` is only written for the
+    /// view frame: `rotate_by_heading` alone says the other two, as it did before `frame` existed.
     pub fn in_frame(self, frame: PointFrame) -> Self {
-        PipelineConfig { rotate_by_heading: frame == PointFrame::BoxHeading, frame: Some(frame), ..self }
+        PipelineConfig {
+            rotate_by_heading: frame == PointFrame::BoxHeading,
+            frame: (frame == PointFrame::View).then_some(frame),
+            ..self
+        }
     }
 
     /// The frame the point networks see.
@@ -157,7 +167,7 @@ mod tests {
             PipelineConfig { lift_temperature: 0.0, ..ok.clone() },
             PipelineConfig { lift_temperature: f64::NAN, ..ok.clone() },
             PipelineConfig { rotate_by_heading: true, ..ok.clone().in_frame(PointFrame::View) },
-            PipelineConfig { rotate_by_heading: false, ..ok.clone().in_frame(PointFrame::BoxHeading) },
+            PipelineConfig { rotate_by_heading: false, frame: Some(PointFrame::BoxHeading), ..ok.clone() },
             PipelineConfig { view_origin: [0.0, f64::NAN, 0.0], ..ok.clone() },
         ];
         for (i, cfg) in bad.iter().enumerate() {
@@ -171,11 +181,10 @@ mod tests {
 
     #[test]
     fn bundles_without_a_frame_keep_their_meaning() {
-        let mut v = serde_json::to_value(PipelineConfig::default()).unwrap_or_default();
-        assert!(v.get("frame").is_none(), "no frame written unless chosen: {v}");
-        if let Some(o) = v.as_object_mut() {
-            o.remove("view_origin");
-        }
+        let mut v =
+            serde_json::to_value(PipelineConfig::default().in_frame(PointFrame::BoxHeading)).unwrap_or_default();
+        assert!(v.get("frame").is_none() && v.get("view_origin").is_none(), "written as before frames: {v}");
+        assert_eq!(PipelineConfig::default().in_frame(PointFrame::BoxHeading), PipelineConfig::default());
         let old: PipelineConfig = serde_json::from_value(v.clone()).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(old.point_frame(), PointFrame::BoxHeading);
         assert_eq!(old.view_origin, NOMINAL_LIDAR_ORIGIN);
