@@ -10,7 +10,6 @@ from __future__ import annotations
 import dataclasses
 from dataclasses import dataclass, field
 
-
 NOMINAL_LIDAR_ORIGIN = [1.43, 0.0, 2.12]
 
 

@@ -1,6 +1,6 @@
-import numpy as np
-
 import dataclasses
+
+import numpy as np
 
 from experiments.heading_error import person_errors, with_heading_error
 from posefuse_train import metrics
