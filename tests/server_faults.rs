@@ -280,10 +280,30 @@ struct ServeProcess {
 
 impl ServeProcess {
     fn start(env: &[(&str, String)]) -> ServeProcess {
+        Self::start_with(env, &[], None)
+    }
+
+    /// With extra `serve` flags and, when given, an open-file limit (soft and hard, so the server
+    /// cannot raise it).
+    fn start_with(env: &[(&str, String)], args: &[&str], nofile: Option<u64>) -> ServeProcess {
         let port = std::net::TcpListener::bind("127.0.0.1:0").unwrap().local_addr().unwrap().port();
         let addr = format!("127.0.0.1:{port}");
         let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_posefuse"));
-        cmd.args(["serve", "--addr", &addr, "--model-dir"]).arg(model_dir());
+        cmd.args(["serve", "--addr", &addr, "--model-dir"]).arg(model_dir()).args(args);
+        if let Some(n) = nofile {
+            use std::os::unix::process::CommandExt;
+            // SAFETY: setrlimit is async-signal-safe and touches only the child being started.
+            unsafe {
+                cmd.pre_exec(move || {
+                    let lim = libc::rlimit { rlim_cur: n as libc::rlim_t, rlim_max: n as libc::rlim_t };
+                    if libc::setrlimit(libc::RLIMIT_NOFILE, &lim) == 0 {
+                        Ok(())
+                    } else {
+                        Err(std::io::Error::last_os_error())
+                    }
+                });
+            }
+        }
         cmd.env(
             "ORT_DYLIB_PATH",
             std::env::var("ORT_DYLIB_PATH").unwrap_or_else(|_| ".ort/lib/libonnxruntime.so".into()),
@@ -331,6 +351,41 @@ impl Drop for ServeProcess {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
+}
+
+/// Metric `name`'s value in a Prometheus text page (0 when absent).
+fn metric(page: &str, name: &str) -> f64 {
+    page.lines().find_map(|l| l.strip_prefix(name).and_then(|v| v.trim().parse().ok())).unwrap_or(0.0)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn out_of_file_descriptors_accept_backs_off_and_the_server_recovers() {
+    // 128 descriptors and a connection cap above them: past about a hundred connections the
+    // server's accept fails with EMFILE while the rest wait in the listen backlog.
+    let s = ServeProcess::start_with(&[], &["--max-connections", "1000"], Some(128));
+    let held: Vec<std::net::TcpStream> = (0..200).filter_map(|_| std::net::TcpStream::connect(&s.addr).ok()).collect();
+    assert!(held.len() > 150, "only {} connections opened", held.len());
+    tokio::time::sleep(Duration::from_millis(300)).await;
+    let cpu = s.cpu_seconds();
+    tokio::time::sleep(Duration::from_secs(2)).await;
+    let spent = s.cpu_seconds() - cpu;
+    // A retry loop without a pause would keep a core busy (about 2 CPU-s here).
+    assert!(spent < 0.5, "{spent:.2} CPU-s in 2 s while out of descriptors");
+    drop(held);
+    let t = Instant::now();
+    let page = loop {
+        if let Ok(r) = reqwest::get(s.url("/metrics")).await {
+            if r.status() == 200 {
+                break r.text().await.unwrap();
+            }
+        }
+        assert!(t.elapsed() < Duration::from_secs(10), "not served again after the descriptors came back");
+        tokio::time::sleep(Duration::from_millis(100)).await;
+    };
+    let errors = metric(&page, "posefuse_accept_errors_total");
+    // About one failed accept per 50 ms pause over the 2.3 s: the loop hit the limit and waited.
+    assert!((5.0..=200.0).contains(&errors), "{errors} accept errors");
+    assert!(s.ready());
 }
 
 /// A frame whose pre-processing is long: many persons, each scanning many points.
