@@ -4,7 +4,9 @@ OKS@3D, MPJPE, the left/right swap rate (overall and for persons showing the sen
 and the median facing error. Standard library only.
 
   python scripts/heading_noise_table.py --bin target/release/posefuse --data DIR \\
-      --bundles models/default,runs/view/bundle --modes fusion,lidar --noise 0,15,45,90,180,uniform
+      --bundles models/default,models/view,models/default@models/view --noise 0,15,45,90,180,uniform
+
+A bundle written MAIN@STAGE serves MAIN with STAGE as its heading stage (`--heading-model`).
 """
 
 from __future__ import annotations
@@ -17,7 +19,10 @@ import sys
 
 
 def run_eval(binary: str, data: str, bundle: str, mode: str, noise: str, seed: int) -> dict:
-    cmd = [binary, "eval", "--data", data, "--model-dir", bundle, "--mode", mode, "--json"]
+    main, _, stage = bundle.partition("@")
+    cmd = [binary, "eval", "--data", data, "--model-dir", main, "--mode", mode, "--json"]
+    if stage:
+        cmd += ["--heading-model", stage]
     cmd += ["--noise-seed", str(seed)]
     if noise not in ("", "0"):
         cmd += ["--heading-noise", noise]
@@ -71,6 +76,8 @@ def main(argv=None) -> int:
             for noise in a.noise.split(","):
                 report = run_eval(a.bin, a.data, bundle, mode, noise, a.noise_seed)
                 version = f"{report['model']['name']} {report['model']['version']}"
+                if "@" in bundle:
+                    version += " + heading stage " + bundle.partition("@")[2]
                 rows.append({"bundle": bundle, "version": version, "mode": mode, "noise": noise, **row(report, mode)})
                 print(f"{bundle} {mode} {noise}: {rows[-1]}", file=sys.stderr)
     print(table(rows))

@@ -13,6 +13,7 @@ use posefuse::runtime::RuntimeConfig;
 use posefuse::server::conn::ConnLimits;
 use posefuse::server::ServerConfig;
 use posefuse::service::admission::Sizing;
+use posefuse::service::heading_stage::AGREE_DEG;
 use posefuse::service::limits::FrameLimits;
 use posefuse::sim::street::Profile;
 use posefuse::sim::SimulateOptions;
@@ -46,6 +47,15 @@ pub struct RuntimeArgs {
     /// Inference jobs (one per person and network) that may wait; beyond, requests get 429.
     #[arg(long, env = "POSEFUSE_QUEUE_SIZE", default_value_t = RT.queue_size)]
     pub queue_size: usize,
+    /// A bundle that needs no box heading (e.g. models/view), asked first: where a box's heading
+    /// disagrees with the facing it predicts, the facing replaces it (docs/BUNDLE.md, "Heading
+    /// stage").
+    #[arg(long, env = "POSEFUSE_HEADING_MODEL")]
+    pub heading_model: Option<PathBuf>,
+    /// With --heading-model: a box heading within this many degrees of the predicted facing is
+    /// kept (larger: trust the detector's headings more).
+    #[arg(long, env = "POSEFUSE_HEADING_AGREE_DEG", default_value_t = AGREE_DEG)]
+    pub heading_agree_deg: f64,
 }
 
 impl RuntimeArgs {
@@ -142,6 +152,8 @@ impl ServeArgs {
             decode_permits: self.decode_permits,
             admission_queue: self.admission_queue,
             frame_limits: FrameLimits { max_persons: self.max_persons, max_points: self.max_points },
+            heading_model_dir: self.runtime.heading_model.clone(),
+            heading_agree_deg: self.runtime.heading_agree_deg,
         }
     }
 }

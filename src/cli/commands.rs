@@ -40,10 +40,17 @@ pub fn cli_predictor(a: &RuntimeArgs) -> anyhow::Result<Predictor> {
     let config = a.runtime_config();
     tracing::info!(model_dir = %a.model_dir.display(), ?config, "effective configuration");
     let runtime = Runtime::load(&a.model_dir, &config)?;
-    if !runtime.wait_ready(Duration::from_secs(300)) {
+    let stage = a.heading_model.as_ref().map(|dir| Runtime::load(dir, &config)).transpose()?;
+    if !runtime.wait_ready(Duration::from_secs(300))
+        || !stage.as_ref().is_none_or(|s| s.wait_ready(Duration::from_secs(300)))
+    {
         anyhow::bail!("the models did not warm up (see the log)");
     }
-    Ok(Predictor::new(runtime))
+    let predictor = Predictor::new(runtime);
+    Ok(match stage {
+        Some(s) => predictor.with_heading_stage(s, a.heading_agree_deg),
+        None => predictor,
+    })
 }
 
 /// A deadline no CLI frame should reach; the server's is a flag.

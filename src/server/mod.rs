@@ -51,6 +51,11 @@ pub struct ServerConfig {
     pub admission_queue: usize,
     /// Persons and points per frame.
     pub frame_limits: FrameLimits,
+    /// A bundle that needs no heading, asked first for each person's facing (docs/BUNDLE.md,
+    /// "Heading stage").
+    pub heading_model_dir: Option<PathBuf>,
+    /// Degrees within which a box heading agreeing with the heading stage's facing is kept.
+    pub heading_agree_deg: f64,
 }
 
 impl ServerConfig {
@@ -80,6 +85,8 @@ impl ServerConfig {
             decode_permits: 2,
             admission_queue: 64,
             frame_limits: FrameLimits::default(),
+            heading_model_dir: None,
+            heading_agree_deg: crate::service::heading_stage::AGREE_DEG,
         }
     }
 }
@@ -114,7 +121,10 @@ impl App {
     pub fn start(config: &ServerConfig) -> Result<App> {
         let runtime = Runtime::load(&config.model_dir, &config.runtime)?;
         let admission = Admission::new(config.decode_permits, config.admission_queue);
-        let predictor = Predictor::with_admission(runtime, admission).with_limits(config.frame_limits);
+        let mut predictor = Predictor::with_admission(runtime, admission).with_limits(config.frame_limits);
+        if let Some(dir) = &config.heading_model_dir {
+            predictor = predictor.with_heading_stage(Runtime::load(dir, &config.runtime)?, config.heading_agree_deg);
+        }
         let reloader = reload::Reloader::new(predictor.clone(), config.model_dir.clone(), config.runtime.clone());
         let state = AppState {
             predictor,
@@ -189,8 +199,9 @@ impl App {
             .layer(axum::middleware::from_fn_with_state(in_flight.clone(), lifecycle::count_in_flight));
         let ready_watch = {
             let (runtime, reporter, ready) = (state.predictor.runtime().clone(), reporter.clone(), state.ready.clone());
+            let stage = state.predictor.heading_stage().cloned();
             tokio::spawn(async move {
-                while !runtime.is_ready() {
+                while !runtime.is_ready() || stage.as_ref().is_some_and(|s| !s.is_ready()) {
                     tokio::time::sleep(Duration::from_millis(10)).await;
                 }
                 reporter.set_service_status("", tonic_health::ServingStatus::Serving).await;

@@ -7,6 +7,7 @@
 pub mod admission;
 pub mod api;
 mod cameras;
+pub mod heading_stage;
 pub mod json;
 pub mod limits;
 pub mod policy;

@@ -31,6 +31,9 @@ pub struct Predictor {
     runtime: Arc<RwLock<Arc<Runtime>>>,
     admission: Arc<Admission>,
     limits: super::limits::FrameLimits,
+    /// A bundle that needs no heading, asked first for the persons' facing (docs/BUNDLE.md,
+    /// "Heading stage"), and how far (degrees) a box heading may be from its facing to be kept.
+    heading_stage: Option<(Arc<Runtime>, f64)>,
 }
 
 /// Everything decided before inference for one person.
@@ -86,7 +89,24 @@ impl Predictor {
 
     /// A predictor whose pre-processing is admitted through `admission`.
     pub fn with_admission(runtime: Arc<Runtime>, admission: Arc<Admission>) -> Predictor {
-        Predictor { runtime: Arc::new(RwLock::new(runtime)), admission, limits: Default::default() }
+        Predictor {
+            runtime: Arc::new(RwLock::new(runtime)),
+            admission,
+            limits: Default::default(),
+            heading_stage: None,
+        }
+    }
+
+    /// The same predictor with `stage` answering first; its facings replace the box headings that
+    /// disagree with them by more than `agree_deg` ([`super::heading_stage::with_estimated_headings`]).
+    pub fn with_heading_stage(mut self, stage: Arc<Runtime>, agree_deg: f64) -> Predictor {
+        self.heading_stage = Some((stage, agree_deg));
+        self
+    }
+
+    /// The heading stage's runtime, when there is one.
+    pub fn heading_stage(&self) -> Option<&Arc<Runtime>> {
+        self.heading_stage.as_ref().map(|(s, _)| s)
     }
 
     /// The same predictor with other per-frame limits.
@@ -131,8 +151,26 @@ impl Predictor {
         frame: Frame,
         raw_images: Option<RawImages>,
     ) -> Result<PoseResponse> {
-        let started = Instant::now();
         let runtime = self.runtime();
+        let frame = match &self.heading_stage {
+            Some((stage, agree_deg)) => {
+                let first = self.predict_on(stage.clone(), ticket, frame.clone(), raw_images.clone()).await?;
+                super::heading_stage::with_estimated_headings(frame, &first, *agree_deg)
+            }
+            None => frame,
+        };
+        self.predict_on(runtime, ticket, frame, raw_images).await
+    }
+
+    /// One pass of a frame through `runtime`'s bundle.
+    async fn predict_on(
+        &self,
+        runtime: Arc<Runtime>,
+        ticket: &Ticket,
+        frame: Frame,
+        raw_images: Option<RawImages>,
+    ) -> Result<PoseResponse> {
+        let started = Instant::now();
         if !runtime.is_ready() {
             return Err(Error::Unavailable("the models are warming up".into()));
         }
