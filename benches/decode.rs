@@ -1,6 +1,6 @@
 //! JPEG decoders on request-size frames: the `image` crate (zune-jpeg) whole at full resolution,
-//! `jpeg-decoder` at each DCT scale, and the planned decode the server runs (scale from the
-//! frame's crop windows). Frames: `POSEFUSE_BENCH_DATA` (a simulator output directory, e.g.
+//! libjpeg-turbo whole at each DCT scale, and the planned decode the server runs (the scale and
+//! region from the frame's crop windows). Frames: `POSEFUSE_BENCH_DATA` (a simulator output directory, e.g.
 //! `posefuse simulate --profile street`), each as written (4:4:4) and re-encoded 4:2:0 at the same
 //! quality; without it, one synthetic 1920×1280 frame. `cargo bench --bench decode`; results in
 //! BENCHMARKS.md.
@@ -11,8 +11,8 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 use std::time::{Duration, Instant};
 
 use base64::Engine;
-use posefuse::image_decode::decode_jpeg;
-use posefuse::pipeline::{plan_decode, CropTransform, PipelineConfig};
+use posefuse::image_decode::decode_planned;
+use posefuse::pipeline::{plan_decode, CropTransform, DecodePlan, PipelineConfig};
 use posefuse::runtime::Bundle;
 
 struct Case {
@@ -88,6 +88,11 @@ fn main() {
     println!("| decoder | 4:4:4 median ms | 4:2:0 median ms |");
     println!("|---|---|---|");
     type Run = Box<dyn Fn(&Case, &[u8])>;
+    let whole = |d: u32| -> Run {
+        Box::new(move |c: &Case, j: &[u8]| {
+            drop(decode_planned(j, &DecodePlan { denominator: d, ..DecodePlan::full(c.size.0, c.size.1) }).unwrap())
+        })
+    };
     let variants: Vec<(&str, Run)> = vec![
         (
             "image (zune-jpeg), full",
@@ -95,13 +100,20 @@ fn main() {
                 drop(image::load_from_memory_with_format(j, image::ImageFormat::Jpeg).unwrap().into_rgb8());
             }),
         ),
-        ("jpeg-decoder 1/1", Box::new(|_, j| drop(decode_jpeg(j, 1).unwrap()))),
-        ("jpeg-decoder 1/2", Box::new(|_, j| drop(decode_jpeg(j, 2).unwrap()))),
-        ("jpeg-decoder 1/4", Box::new(|_, j| drop(decode_jpeg(j, 4).unwrap()))),
-        ("jpeg-decoder 1/8", Box::new(|_, j| drop(decode_jpeg(j, 8).unwrap()))),
+        ("libjpeg-turbo 1/1, whole", whole(1)),
+        ("libjpeg-turbo 1/2, whole", whole(2)),
+        ("libjpeg-turbo 1/4, whole", whole(4)),
+        ("libjpeg-turbo 1/8, whole", whole(8)),
         (
-            "planned (the server's)",
-            Box::new(|c, j| drop(decode_jpeg(j, plan_decode(&c.windows, c.size.0, c.size.1).denominator).unwrap())),
+            "libjpeg-turbo, planned scale, whole",
+            Box::new(|c, j| {
+                let d = plan_decode(&c.windows, c.size.0, c.size.1).denominator;
+                drop(decode_planned(j, &DecodePlan { denominator: d, ..DecodePlan::full(c.size.0, c.size.1) }).unwrap())
+            }),
+        ),
+        (
+            "libjpeg-turbo, planned scale and region (the server's)",
+            Box::new(|c, j| drop(decode_planned(j, &plan_decode(&c.windows, c.size.0, c.size.1)).unwrap())),
         ),
     ];
     for (name, run) in &variants {
