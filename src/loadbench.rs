@@ -191,7 +191,12 @@ fn ms(d: Duration) -> f64 {
     d.as_secs_f64() * 1e3
 }
 
-/// One request; the status label ("200", "429", gRPC code names, "timeout", "error").
+/// How long a refused client waits before its next request when the answer names no time
+/// (gRPC's `RESOURCE_EXHAUSTED`): the server's `Retry-After` on HTTP.
+const RETRY_AFTER_DEFAULT: Duration = Duration::from_secs(1);
+
+/// One request: the status label ("200", "429", gRPC code names, "timeout", "error"), and the
+/// back-off the server asked for when it refused the request.
 async fn send(
     protocol: Protocol,
     http: &reqwest::Client,
@@ -199,7 +204,7 @@ async fn send(
     url: &str,
     p: &Prepared,
     timeout: Duration,
-) -> String {
+) -> (String, Option<Duration>) {
     match protocol {
         Protocol::Http => {
             let req = http
@@ -209,26 +214,38 @@ async fn send(
                 .timeout(timeout);
             match req.send().await {
                 Ok(r) => {
-                    let status = r.status().as_u16().to_string();
+                    let status = r.status();
+                    let retry = (status == reqwest::StatusCode::TOO_MANY_REQUESTS).then(|| retry_after(r.headers()));
                     match r.bytes().await {
-                        Ok(_) => status,
-                        Err(e) if e.is_timeout() => "timeout".into(),
-                        Err(_) => "error".into(),
+                        Ok(_) => (status.as_u16().to_string(), retry),
+                        Err(e) if e.is_timeout() => ("timeout".into(), None),
+                        Err(_) => ("error".into(), None),
                     }
                 }
-                Err(e) if e.is_timeout() => "timeout".into(),
-                Err(_) => "error".into(),
+                Err(e) if e.is_timeout() => ("timeout".into(), None),
+                Err(_) => ("error".into(), None),
             }
         }
         Protocol::Grpc => {
-            let Some(client) = grpc.as_mut() else { return "error".into() };
+            let Some(client) = grpc.as_mut() else { return ("error".into(), None) };
             match tokio::time::timeout(timeout, client.predict(p.grpc.clone())).await {
-                Ok(Ok(_)) => "200".into(),
-                Ok(Err(s)) => format!("{:?}", s.code()),
-                Err(_) => "timeout".into(),
+                Ok(Ok(_)) => ("200".into(), None),
+                Ok(Err(s)) => {
+                    let retry = (s.code() == tonic::Code::ResourceExhausted).then_some(RETRY_AFTER_DEFAULT);
+                    (format!("{:?}", s.code()), retry)
+                }
+                Err(_) => ("timeout".into(), None),
             }
         }
     }
+}
+
+/// The `Retry-After` of a 429 in seconds (the server sends whole seconds).
+fn retry_after(headers: &reqwest::header::HeaderMap) -> Duration {
+    headers
+        .get(reqwest::header::RETRY_AFTER)
+        .and_then(|v| v.to_str().ok()?.trim().parse::<u64>().ok())
+        .map_or(RETRY_AFTER_DEFAULT, Duration::from_secs)
 }
 
 /// How one step loads the server.
@@ -263,9 +280,15 @@ async fn run_step(load: Load, url: &str, pid: Option<u32>, frames: Arc<Vec<Prepa
             while started.elapsed() < duration {
                 let p = &frames[i % frames.len()];
                 let t = Instant::now();
-                let status = send(protocol, &http, &mut grpc, &url, p, timeout).await;
+                let (status, retry) = send(protocol, &http, &mut grpc, &url, p, timeout).await;
                 out.push((t.elapsed(), status, p.persons));
                 i += 1;
+                // A refused client waits as the server asked, as well-behaved clients do; without
+                // it a full server is measured against a retry storm on the same cores.
+                if let Some(wait) = retry {
+                    let left = duration.saturating_sub(started.elapsed());
+                    tokio::time::sleep(wait.min(left)).await;
+                }
             }
             out
         }));
@@ -534,4 +557,20 @@ pub fn run_bench(args: BenchOptions) -> anyhow::Result<()> {
     }
     drop(spawned);
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_refused_client_waits_the_servers_retry_after() {
+        let mut h = reqwest::header::HeaderMap::new();
+        assert_eq!(retry_after(&h), RETRY_AFTER_DEFAULT);
+        h.insert(reqwest::header::RETRY_AFTER, " 3".parse().unwrap());
+        assert_eq!(retry_after(&h), Duration::from_secs(3));
+        // an HTTP date or garbage: the default
+        h.insert(reqwest::header::RETRY_AFTER, "Wed, 21 Oct 2026 07:28:00 GMT".parse().unwrap());
+        assert_eq!(retry_after(&h), RETRY_AFTER_DEFAULT);
+    }
 }

@@ -641,3 +641,67 @@ async fn many_of_the_largest_boxes_are_refused_before_cropping() {
     assert!(t.elapsed() < Duration::from_secs(3), "{:?}", t.elapsed());
     s.shutdown().await.unwrap();
 }
+
+/// One HTTP/1 response read off a raw connection: status and body (by its Content-Length).
+async fn read_response(stream: &mut TcpStream) -> (u16, Vec<u8>) {
+    let mut buf = Vec::new();
+    let mut chunk = [0u8; 4096];
+    let head_end = loop {
+        if let Some(i) = buf.windows(4).position(|w| w == b"\r\n\r\n") {
+            break i + 4;
+        }
+        let n = tokio::time::timeout(Duration::from_secs(5), stream.read(&mut chunk)).await.unwrap().unwrap();
+        assert!(n > 0, "connection closed before a response: {:?}", String::from_utf8_lossy(&buf));
+        buf.extend_from_slice(&chunk[..n]);
+    };
+    let head = String::from_utf8_lossy(&buf[..head_end]).to_lowercase();
+    let status: u16 = head.split_whitespace().nth(1).unwrap().parse().unwrap();
+    let len: usize =
+        head.lines().find_map(|l| l.strip_prefix("content-length:")).map_or(0, |v| v.trim().parse().unwrap());
+    while buf.len() < head_end + len {
+        let n = tokio::time::timeout(Duration::from_secs(5), stream.read(&mut chunk)).await.unwrap().unwrap();
+        assert!(n > 0, "connection closed inside a response body");
+        buf.extend_from_slice(&chunk[..n]);
+    }
+    (status, buf[head_end..head_end + len].to_vec())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refused_request_gets_its_429_early_and_its_connection_stays_usable() {
+    let mut cfg = config();
+    (cfg.decode_permits, cfg.admission_queue) = (1, 0);
+    let s = start(cfg).await;
+    let pause = s.predictor.runtime().pause();
+    // One frame holds the only place (its inference is paused).
+    let first = {
+        let (url, body) = (s.url("/v1/poses"), frame_json());
+        tokio::spawn(
+            async move { reqwest::Client::new().post(url).json(&body).send().await.map(|r| r.status().as_u16()) },
+        )
+    };
+    let t0 = Instant::now();
+    while s.predictor.admission().admitted() == 0 {
+        assert!(t0.elapsed() < Duration::from_secs(5), "the first frame was never admitted");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    // A 4 MB body, of which only the first 64 KB are sent before the answer is read.
+    let mut big = frame_json();
+    big["frame_id"] = json!("x".repeat(4 << 20));
+    let big = serde_json::to_vec(&big).unwrap();
+    let mut c = TcpStream::connect(s.addr).await.unwrap();
+    let head = format!(
+        "POST /v1/poses HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
+        big.len()
+    );
+    c.write_all(head.as_bytes()).await.unwrap();
+    c.write_all(&big[..64 << 10]).await.unwrap();
+    let (status, body) = read_response(&mut c).await;
+    assert_eq!(status, 429, "{}", String::from_utf8_lossy(&body));
+    // The rest of the body is taken (not a reset), and the same connection serves the next request.
+    c.write_all(&big[64 << 10..]).await.unwrap();
+    c.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n").await.unwrap();
+    assert_eq!(read_response(&mut c).await.0, 200);
+    drop(pause);
+    assert_eq!(first.await.unwrap().unwrap(), 200);
+    s.shutdown().await.unwrap();
+}

@@ -119,9 +119,32 @@ fn check_json_content_type(headers: &HeaderMap) -> Result<()> {
 ))]
 async fn poses(State(state): State<AppState>, req: Request) -> Result<Json<PoseResponse>> {
     // Admitted before the body is read: a full server answers 429 without reading or parsing.
-    let ticket = state.predictor.admission().admit()?;
+    let ticket = match state.predictor.admission().admit() {
+        Ok(ticket) => ticket,
+        Err(e) => {
+            discard_body(req, state.body_limit);
+            return Err(e);
+        }
+    };
     let ApiJson(frame) = ApiJson::<Frame>::from_request(req, &state).await?;
     state.predictor.answer_admitted(&ticket, frame, None, state.request_timeout).await.map(Json)
+}
+
+/// Reads and drops a refused request's body beside its early answer. Closing a connection with
+/// unread body bytes makes the kernel reset it, and a client still sending then sees a broken
+/// connection instead of the 429 (and must reconnect); read to its end, the connection stays
+/// usable. Bounded: at most `limit` bytes, each chunk within the body-read timeout.
+fn discard_body(req: Request, limit: usize) {
+    let mut body = req.into_body().into_data_stream();
+    tokio::spawn(async move {
+        let mut read = 0usize;
+        while let Some(Ok(chunk)) = body.next().await {
+            read += chunk.len();
+            if read > limit {
+                break;
+            }
+        }
+    });
 }
 
 /// Several frames: a JSON array in and out, or NDJSON (`Content-Type: application/x-ndjson`)
