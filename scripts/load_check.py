@@ -98,15 +98,24 @@ class Server:
             return -9
 
 
-async def read_response(reader: asyncio.StreamReader) -> tuple[int, bytes]:
+async def read_response_with_headers(
+    reader: asyncio.StreamReader,
+) -> tuple[int, dict[str, str], bytes]:
     head = await reader.readuntil(b"\r\n\r\n")
     lines = head.decode("latin-1").split("\r\n")
     status = int(lines[0].split()[1])
-    length = 0
+    headers = {}
     for line in lines[1:]:
-        if line.lower().startswith("content-length:"):
-            length = int(line.split(":", 1)[1])
+        if ":" in line:
+            name, value = line.split(":", 1)
+            headers[name.strip().lower()] = value.strip()
+    length = int(headers.get("content-length", "0"))
     body = await reader.readexactly(length) if length else b""
+    return status, headers, body
+
+
+async def read_response(reader: asyncio.StreamReader) -> tuple[int, bytes]:
+    status, _, body = await read_response_with_headers(reader)
     return status, body
 
 
@@ -134,6 +143,8 @@ class KeepAlive:
     def __init__(self, port: int) -> None:
         self.port = port
         self.conn: tuple[asyncio.StreamReader, asyncio.StreamWriter] | None = None
+        # The last refusal's Retry-After (seconds), when it gave one.
+        self.retry_after: float | None = None
 
     async def post(self, path: str, body: bytes, timeout: float = 60) -> int:
         for attempt in range(2):
@@ -148,11 +159,18 @@ class KeepAlive:
                 # The answer may come before the body is read (429 at admission): wait for it,
                 # not for the body to be sent.
                 writer.write(head.encode() + body)
-                status, _ = await asyncio.wait_for(read_response(reader), timeout)
+                status, headers, _ = await asyncio.wait_for(
+                    read_response_with_headers(reader), timeout
+                )
                 if status == 429:
-                    # The server did not read the body: this connection cannot be reused.
+                    self.retry_after = float(headers.get("retry-after", "1"))
+                if headers.get("connection", "").lower() == "close":
                     writer.close()
                     self.conn = None
+                else:
+                    # The body may still be on its way (an early 429): finish sending it
+                    # before the next request on this connection.
+                    await asyncio.wait_for(writer.drain(), timeout)
                 return status
             except (OSError, asyncio.IncompleteReadError):
                 writer.close()
@@ -307,7 +325,7 @@ async def idle_check(a: argparse.Namespace) -> dict:
 
 
 async def run_clients(
-    server: Server, frames: list[bytes], clients: int, duration: float
+    server: Server, frames: list[bytes], clients: int, duration: float, backoff: str
 ) -> dict:
     statuses: dict[int, int] = {}
     ok_latency: list[float] = []
@@ -332,7 +350,8 @@ async def run_clients(
                 ok_latency.append(dt)
             elif status == 429:
                 refused_latency.append(dt)
-                await asyncio.sleep(0.05)
+                wait = conn.retry_after if backoff == "retry-after" else float(backoff)
+                await asyncio.sleep(min(wait or 0.0, max(stop_at - time.time(), 0.0)))
         conn.close()
 
     async def watch() -> None:
@@ -363,13 +382,14 @@ async def overload_check(a: argparse.Namespace) -> dict:
     raise_fd_limit()
     frames = load_frames(a.frames)
     server = Server(a.bin, a.model_dir, {}, a.log)
-    base = await run_clients(server, frames, 16, a.duration)
-    high = await run_clients(server, frames, a.clients, a.duration)
+    base = await run_clients(server, frames, 16, a.duration, a.backoff)
+    high = await run_clients(server, frames, a.clients, a.duration, a.backoff)
     await asyncio.sleep(30)
     after = server.proc_status().get("VmRSS", 0) / 1024
     code = server.stop()
     result = {
         "check": "overload",
+        "backoff": a.backoff,
         "base": base,
         "high": high,
         "throughput_ratio": round(high["ok_per_s"] / max(base["ok_per_s"], 1e-9), 3),
@@ -450,6 +470,12 @@ def main() -> None:
     p.add_argument("--clients", type=int, default=256)
     p.add_argument(
         "--duration", type=float, default=15.0, help="seconds per load phase"
+    )
+    p.add_argument(
+        "--backoff",
+        default="0.05",
+        help="seconds a refused overload client waits before its next request, or "
+        "'retry-after' for the server's Retry-After",
     )
     p.add_argument("--drain-timeout", type=int, default=5)
     p.add_argument("--log", type=Path, default=Path("/tmp/posefuse-load-check.log"))

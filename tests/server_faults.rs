@@ -701,6 +701,13 @@ async fn a_refused_request_gets_its_429_early_and_its_connection_stays_usable() 
     c.write_all(&big[64 << 10..]).await.unwrap();
     c.write_all(b"GET /healthz HTTP/1.1\r\nHost: x\r\n\r\n").await.unwrap();
     assert_eq!(read_response(&mut c).await.0, 200);
+    // A client that waits for `100 Continue` is refused without being invited to send its body.
+    let mut polite = TcpStream::connect(s.addr).await.unwrap();
+    let head = head.replace("\r\n\r\n", "\r\nExpect: 100-continue\r\n\r\n");
+    polite.write_all(head.as_bytes()).await.unwrap();
+    assert_eq!(read_response(&mut polite).await.0, 429, "a 100 Continue came first");
+    // and the server does not wait for that body (which will not come)
+    assert!(closed_within(&mut polite, Duration::from_secs(2)).await, "the server waits for the body");
     drop(pause);
     assert_eq!(first.await.unwrap().unwrap(), 200);
     s.shutdown().await.unwrap();

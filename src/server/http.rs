@@ -133,8 +133,17 @@ async fn poses(State(state): State<AppState>, req: Request) -> Result<Json<PoseR
 /// Reads and drops a refused request's body beside its early answer. Closing a connection with
 /// unread body bytes makes the kernel reset it, and a client still sending then sees a broken
 /// connection instead of the 429 (and must reconnect); read to its end, the connection stays
-/// usable. Bounded: at most `limit` bytes, each chunk within the body-read timeout.
+/// usable. Bounded: at most `limit` bytes, each chunk within the body-read timeout. A client
+/// that asked `Expect: 100-continue` has not sent its body and never will: reading it would
+/// invite it to.
 fn discard_body(req: Request, limit: usize) {
+    let expects_continue = req
+        .headers()
+        .get(header::EXPECT)
+        .is_some_and(|v| v.to_str().is_ok_and(|v| v.eq_ignore_ascii_case("100-continue")));
+    if expects_continue {
+        return;
+    }
     let mut body = req.into_body().into_data_stream();
     tokio::spawn(async move {
         let mut read = 0usize;
