@@ -1,7 +1,7 @@
 """Bundles under box-heading noise, through the serving path: runs `posefuse eval --heading-noise`
-for every bundle × mode × noise and prints docs/RESULTS.md's table ("Heading noise"), with
-OKS@3D, MPJPE, the left/right swap rate (overall and for persons showing the sensor their back)
-and the median facing error. Standard library only.
+for every bundle × mode × noise and prints the measurements behind docs/RESULTS.md's "A model that
+needs no heading": OKS@3D, MPJPE, the left/right swap rate (overall and for persons showing the
+sensor their back) and the median facing error. Standard library only.
 
   python scripts/heading_noise_table.py --bin target/release/posefuse --data DIR \\
       --bundles models/default,models/view,models/default@models/view --noise 0,15,45,90,180,uniform
