@@ -90,7 +90,10 @@ fn main() {
     type Run = Box<dyn Fn(&Case, &[u8])>;
     let whole = |d: u32| -> Run {
         Box::new(move |c: &Case, j: &[u8]| {
-            drop(decode_planned(j, &DecodePlan { denominator: d, ..DecodePlan::full(c.size.0, c.size.1) }).unwrap())
+            drop(
+                decode_planned(j, &DecodePlan { denominator: d, whole: false, ..DecodePlan::full(c.size.0, c.size.1) })
+                    .unwrap(),
+            )
         })
     };
     let variants: Vec<(&str, Run)> = vec![
@@ -108,7 +111,13 @@ fn main() {
             "libjpeg-turbo, planned scale, whole",
             Box::new(|c, j| {
                 let d = plan_decode(&c.windows, c.size.0, c.size.1).denominator;
-                drop(decode_planned(j, &DecodePlan { denominator: d, ..DecodePlan::full(c.size.0, c.size.1) }).unwrap())
+                drop(
+                    decode_planned(
+                        j,
+                        &DecodePlan { denominator: d, whole: false, ..DecodePlan::full(c.size.0, c.size.1) },
+                    )
+                    .unwrap(),
+                )
             }),
         ),
         (

@@ -9,7 +9,8 @@
 //! ¼ or ⅛: a reduced inverse transform per 8×8 block) and only the plan's region (rows above it
 //! skipped, rows below it never read, columns outside it not transformed), in about half the time
 //! of the whole decode on the street frames, with fusion and LiDAR accuracy unchanged
-//! (BENCHMARKS.md). `POSEFUSE_DECODE=full` (read once) decodes JPEGs whole at full resolution
+//! (BENCHMARKS.md). A plan that is the whole image at full resolution (`DecodePlan::whole`) is
+//! decoded whole by the `image` crate (zune-jpeg), the faster whole-image decoder. `POSEFUSE_DECODE=full` (read once) decodes JPEGs whole at full resolution
 //! with the `image` crate (zune-jpeg) instead. PNG and raw RGB8 pixels are used at full
 //! resolution.
 
@@ -176,7 +177,7 @@ fn guard<T>(f: impl FnOnce() -> std::result::Result<T, String>) -> std::result::
 pub fn decode(image: CameraImage, plan: &DecodePlan) -> std::result::Result<DecodedImage, String> {
     match image {
         CameraImage::Pixels(image) => Ok(DecodedImage::whole(image)),
-        CameraImage::Jpeg(bytes) if planned_decode_enabled() => decode_planned(&bytes, plan),
+        CameraImage::Jpeg(bytes) if planned_decode_enabled() && !plan.whole => decode_planned(&bytes, plan),
         CameraImage::Jpeg(bytes) => decode_with_image_crate(&bytes, image::ImageFormat::Jpeg),
         CameraImage::Png(bytes) => decode_with_image_crate(&bytes, image::ImageFormat::Png),
         CameraImage::Absent => Err("no image in the request".into()),
@@ -231,7 +232,7 @@ mod tests {
     }
 
     fn whole_plan(d: u32, w: u32, h: u32) -> DecodePlan {
-        DecodePlan { denominator: d, ..DecodePlan::full(w, h) }
+        DecodePlan { denominator: d, whole: false, ..DecodePlan::full(w, h) }
     }
 
     #[test]

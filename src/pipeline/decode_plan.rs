@@ -35,13 +35,21 @@ pub struct DecodePlan {
     /// The full-resolution pixels the crops read (windows plus the resize filter's margin),
     /// clipped to the image; `None` when no window touches the image (every crop is black).
     pub region: Option<PixelRect>,
+    /// The whole image at full resolution: no reduction and so large a region that the fastest
+    /// whole-image decoder beats a partial one.
+    pub whole: bool,
 }
+
+/// Above this share of the image, a full-resolution region is decoded as the whole image:
+/// measured on the street frames, libjpeg-turbo's region decode at 1/1 is faster than
+/// zune-jpeg's whole decode up to about a quarter of the image and slower beyond (BENCHMARKS.md).
+pub const WHOLE_ABOVE_SHARE: f64 = 0.25;
 
 impl DecodePlan {
     /// Full resolution, whole image: what a frame without crop windows, or a decoder without DCT
     /// scaling, gets.
     pub fn full(width: u32, height: u32) -> DecodePlan {
-        DecodePlan { denominator: 1, region: Some(PixelRect { x0: 0, y0: 0, x1: width, y1: height }) }
+        DecodePlan { denominator: 1, region: Some(PixelRect { x0: 0, y0: 0, x1: width, y1: height }), whole: true }
     }
 }
 
@@ -74,7 +82,7 @@ fn usable(t: &CropTransform, width: u32, height: u32) -> bool {
 pub fn plan_decode(windows: &[CropTransform], width: u32, height: u32) -> DecodePlan {
     let used: Vec<&CropTransform> = windows.iter().filter(|t| usable(t, width, height)).collect();
     if used.is_empty() {
-        return DecodePlan { denominator: 1, region: None };
+        return DecodePlan { denominator: 1, region: None, whole: false };
     }
     let denominator =
         DCT_DENOMINATORS.into_iter().find(|&d| used.iter().all(|t| t.side() / d as f64 >= t.size as f64)).unwrap_or(1);
@@ -91,7 +99,10 @@ pub fn plan_decode(windows: &[CropTransform], width: u32, height: u32) -> Decode
     }
     let clip = |v: i64, n: u32| v.clamp(0, n as i64) as u32;
     let region = PixelRect { x0: clip(x0, width), y0: clip(y0, height), x1: clip(x1, width), y1: clip(y1, height) };
-    DecodePlan { denominator, region: (region.area() > 0).then_some(region) }
+    if denominator == 1 && region.area() as f64 > WHOLE_ABOVE_SHARE * width as f64 * height as f64 {
+        return DecodePlan::full(width, height);
+    }
+    DecodePlan { denominator, region: (region.area() > 0).then_some(region), whole: false }
 }
 
 #[cfg(test)]
@@ -150,10 +161,23 @@ mod tests {
     }
 
     #[test]
+    fn a_full_resolution_region_over_a_quarter_of_the_image_is_the_whole_image() {
+        // two small persons far apart: full scale, and their region spans most of the frame
+        let spread = plan_decode(&[window(100.0, 300.0, 100.0, 64), window(1800.0, 1100.0, 100.0, 64)], 1920, 1280);
+        assert_eq!(spread, DecodePlan::full(1920, 1280));
+        // the same two close together keep their region
+        let close = plan_decode(&[window(900.0, 600.0, 100.0, 64), window(1000.0, 650.0, 100.0, 64)], 1920, 1280);
+        assert!(!close.whole && close.region.unwrap().area() < 1920 * 1280 / 4, "{close:?}");
+        // a reduced scale keeps its region however large (the scaled decode pays)
+        let big = plan_decode(&[window(100.0, 300.0, 300.0, 64), window(1800.0, 1000.0, 300.0, 64)], 1920, 1280);
+        assert_eq!((big.denominator, big.whole), (4, false));
+    }
+
+    #[test]
     fn windows_that_miss_the_image_constrain_nothing() {
         let off = window(-500.0, 300.0, 100.0, 64);
         let nan = CropTransform { x0: f64::NAN, ..off };
-        assert_eq!(plan_decode(&[off, nan], 1920, 1280), DecodePlan { denominator: 1, region: None });
+        assert_eq!(plan_decode(&[off, nan], 1920, 1280), DecodePlan { denominator: 1, region: None, whole: false });
         let big = window(900.0, 600.0, 600.0, 64);
         assert_eq!(plan_decode(&[off, big], 1920, 1280).denominator, 8);
         assert_eq!(plan_decode(&[], 1920, 1280).region, None);
