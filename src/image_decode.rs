@@ -10,9 +10,9 @@
 //! skipped, rows below it never read, columns outside it not transformed), in about half the time
 //! of the whole decode on the street frames, with fusion and LiDAR accuracy unchanged
 //! (BENCHMARKS.md). A plan that is the whole image at full resolution (`DecodePlan::whole`) is
-//! decoded whole by the `image` crate (zune-jpeg), the faster whole-image decoder. `POSEFUSE_DECODE=full` (read once) decodes JPEGs whole at full resolution
-//! with the `image` crate (zune-jpeg) instead. PNG and raw RGB8 pixels are used at full
-//! resolution.
+//! decoded whole by the `image` crate (zune-jpeg), the faster whole-image decoder;
+//! `POSEFUSE_DECODE=full` (read once) decodes every JPEG that way. PNG and raw RGB8 pixels are
+//! used at full resolution.
 
 mod turbo;
 
