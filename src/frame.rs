@@ -80,17 +80,32 @@ impl RgbPixels {
 /// Bytes as base64 text in JSON.
 mod base64_bytes {
     use base64::Engine;
-    use serde::{Deserialize, Deserializer, Serializer};
+    use serde::{Deserializer, Serializer};
 
     pub fn serialize<S: Serializer>(bytes: &[u8], s: S) -> std::result::Result<S::Ok, S::Error> {
         s.serialize_str(&base64::engine::general_purpose::STANDARD.encode(bytes))
     }
 
+    /// Decodes the text where the parser holds it (the request body itself when the string has
+    /// no escapes): raw frames are megabytes, and an owned copy of the text would double them.
     pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> std::result::Result<Vec<u8>, D::Error> {
-        let text = String::deserialize(d)?;
-        base64::engine::general_purpose::STANDARD
-            .decode(text.as_bytes())
-            .map_err(|e| serde::de::Error::custom(format!("not valid base64: {e}")))
+        d.deserialize_str(Base64Visitor)
+    }
+
+    struct Base64Visitor;
+
+    impl serde::de::Visitor<'_> for Base64Visitor {
+        type Value = Vec<u8>;
+
+        fn expecting(&self, f: &mut std::fmt::Formatter) -> std::fmt::Result {
+            f.write_str("a base64 string")
+        }
+
+        fn visit_str<E: serde::de::Error>(self, text: &str) -> std::result::Result<Vec<u8>, E> {
+            base64::engine::general_purpose::STANDARD
+                .decode(text.as_bytes())
+                .map_err(|e| E::custom(format!("not valid base64: {e}")))
+        }
     }
 }
 
@@ -525,5 +540,20 @@ mod tests {
         v["mode"] = "auto".into();
         v["extra"] = 1.into();
         assert!(serde_json::from_value::<Frame>(v).is_err());
+    }
+
+    #[test]
+    fn raw_pixels_decode_from_the_body_with_or_without_escapes() {
+        let parse = |b64: &str| {
+            let json = format!(r#"{{"width": 1, "height": 1, "b64": "{b64}"}}"#);
+            crate::service::json::parse_json::<RgbPixels>(json.as_bytes())
+        };
+        assert_eq!(parse("AQID").unwrap().pixels, vec![1, 2, 3]);
+        // an escaped character makes the parser copy the text first: the same bytes
+        assert_eq!(parse(r"AQID").unwrap().pixels, vec![1, 2, 3]);
+        let e = parse("not base64!").unwrap_err();
+        assert_eq!(e.field_name(), Some("b64"));
+        assert!(e.to_string().contains("not valid base64"), "{e}");
+        assert!(parse("").unwrap().pixels.is_empty());
     }
 }
