@@ -555,5 +555,7 @@ mod tests {
         assert_eq!(e.field_name(), Some("b64"));
         assert!(e.to_string().contains("not valid base64"), "{e}");
         assert!(parse("").unwrap().pixels.is_empty());
+        let e = crate::service::json::parse_json::<RgbPixels>(br#"{"width": 1, "height": 1, "b64": 7}"#).unwrap_err();
+        assert!(e.to_string().contains("expected a base64 string"), "{e}");
     }
 }

@@ -270,6 +270,19 @@ mod tests {
     }
 
     #[test]
+    fn a_jpeg_is_decoded_as_planned_by_default_and_a_whole_plan_whole() {
+        let (_, jpeg) = pattern(960, 640);
+        let t = CropTransform { x0: 301.7, y0: 122.4, scale: 64.0 / 410.0, size: 64 };
+        let plan = plan_decode(&[t], 960, 640);
+        assert!(!plan.whole);
+        let out = decode(CameraImage::Jpeg(jpeg.clone()), &plan).unwrap();
+        assert_eq!(out.denominator, plan.denominator);
+        assert!(out.origin != (0, 0) && out.image.width() < 960 / plan.denominator, "{:?}", out.origin);
+        let whole = decode(CameraImage::Jpeg(jpeg), &DecodePlan::full(960, 640)).unwrap();
+        assert_eq!((whole.denominator, whole.origin, whole.image.dimensions()), (1, (0, 0), (960, 640)));
+    }
+
+    #[test]
     fn the_planned_region_gives_the_crops_of_the_whole_scaled_image() {
         let (_, jpeg) = pattern(960, 640);
         // two persons, one at the image's left edge, one inside; a third window off the image
