@@ -712,3 +712,45 @@ async fn a_refused_request_gets_its_429_early_and_its_connection_stays_usable() 
     assert_eq!(first.await.unwrap().unwrap(), 200);
     s.shutdown().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refused_body_is_read_no_further_than_the_body_limit() {
+    let mut cfg = config();
+    (cfg.decode_permits, cfg.admission_queue) = (1, 0);
+    cfg.body_limit = 1 << 20;
+    let s = start(cfg).await;
+    let pause = s.predictor.runtime().pause();
+    let first = {
+        let (url, body) = (s.url("/v1/poses"), frame_json());
+        tokio::spawn(
+            async move { reqwest::Client::new().post(url).json(&body).send().await.map(|r| r.status().as_u16()) },
+        )
+    };
+    let t0 = Instant::now();
+    while s.predictor.admission().admitted() == 0 {
+        assert!(t0.elapsed() < Duration::from_secs(5), "the first frame was never admitted");
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+    // 8 MB declared, 8 times the limit: refused at once, then read only up to the limit
+    let mut c = TcpStream::connect(s.addr).await.unwrap();
+    let len = 8usize << 20;
+    let head = format!(
+        "POST /v1/poses HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {len}\r\n\r\n"
+    );
+    c.write_all(head.as_bytes()).await.unwrap();
+    assert_eq!(read_response(&mut c).await.0, 429);
+    let chunk = vec![b' '; 64 << 10];
+    let mut sent = 0;
+    while sent < len {
+        // the server stops reading past the limit and closes: the write fails or stalls there
+        match tokio::time::timeout(Duration::from_millis(500), c.write_all(&chunk)).await {
+            Ok(Ok(())) => sent += chunk.len(),
+            _ => break,
+        }
+    }
+    assert!(sent < len, "all {len} bytes were taken");
+    assert!(closed_within(&mut c, Duration::from_secs(2)).await, "the connection stays open");
+    drop(pause);
+    assert_eq!(first.await.unwrap().unwrap(), 200);
+    s.shutdown().await.unwrap();
+}
