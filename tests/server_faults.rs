@@ -666,13 +666,15 @@ async fn read_response(stream: &mut TcpStream) -> (u16, Vec<u8>) {
     (status, buf[head_end..head_end + len].to_vec())
 }
 
-#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn a_refused_request_gets_its_429_early_and_its_connection_stays_usable() {
-    let mut cfg = config();
+/// A server with room for one frame, and that one frame in it: admitted, its inference paused.
+/// Returns the server, the pause (drop it to let the frame finish) and the frame's answer.
+async fn full_server(
+    cfg: posefuse::server::ServerConfig,
+) -> (TestServer, posefuse::runtime::PauseGuard, tokio::task::JoinHandle<reqwest::Result<u16>>) {
+    let mut cfg = cfg;
     (cfg.decode_permits, cfg.admission_queue) = (1, 0);
     let s = start(cfg).await;
     let pause = s.predictor.runtime().pause();
-    // One frame holds the only place (its inference is paused).
     let first = {
         let (url, body) = (s.url("/v1/poses"), frame_json());
         tokio::spawn(
@@ -684,6 +686,12 @@ async fn a_refused_request_gets_its_429_early_and_its_connection_stays_usable() 
         assert!(t0.elapsed() < Duration::from_secs(5), "the first frame was never admitted");
         tokio::time::sleep(Duration::from_millis(5)).await;
     }
+    (s, pause, first)
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_refused_request_gets_its_429_early_and_its_connection_stays_usable() {
+    let (s, pause, first) = full_server(config()).await;
     // A 4 MB body, of which only the first 64 KB are sent before the answer is read.
     let mut big = frame_json();
     big["frame_id"] = json!("x".repeat(4 << 20));
@@ -716,21 +724,8 @@ async fn a_refused_request_gets_its_429_early_and_its_connection_stays_usable() 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_refused_body_is_read_no_further_than_the_body_limit() {
     let mut cfg = config();
-    (cfg.decode_permits, cfg.admission_queue) = (1, 0);
     cfg.body_limit = 1 << 20;
-    let s = start(cfg).await;
-    let pause = s.predictor.runtime().pause();
-    let first = {
-        let (url, body) = (s.url("/v1/poses"), frame_json());
-        tokio::spawn(
-            async move { reqwest::Client::new().post(url).json(&body).send().await.map(|r| r.status().as_u16()) },
-        )
-    };
-    let t0 = Instant::now();
-    while s.predictor.admission().admitted() == 0 {
-        assert!(t0.elapsed() < Duration::from_secs(5), "the first frame was never admitted");
-        tokio::time::sleep(Duration::from_millis(5)).await;
-    }
+    let (s, pause, first) = full_server(cfg).await;
     // 8 MB declared, 8 times the limit: refused at once, then read only up to the limit
     let mut c = TcpStream::connect(s.addr).await.unwrap();
     let len = 8usize << 20;
