@@ -74,7 +74,12 @@ impl DecodedImage {
 /// Whether JPEGs are decoded as planned (the default) rather than whole (`POSEFUSE_DECODE=full`).
 pub fn planned_decode_enabled() -> bool {
     static PLANNED: OnceLock<bool> = OnceLock::new();
-    *PLANNED.get_or_init(|| !std::env::var("POSEFUSE_DECODE").is_ok_and(|v| v.eq_ignore_ascii_case("full")))
+    *PLANNED.get_or_init(|| planned_unless_full(std::env::var("POSEFUSE_DECODE").ok().as_deref()))
+}
+
+/// The value of `POSEFUSE_DECODE` read as "decode as planned": any value but `full`.
+fn planned_unless_full(value: Option<&str>) -> bool {
+    !value.is_some_and(|v| v.eq_ignore_ascii_case("full"))
 }
 
 /// Encoded images that travel as bytes beside the frame (gRPC, KServe) rather than as base64 in
@@ -278,8 +283,13 @@ mod tests {
         let out = decode(CameraImage::Jpeg(jpeg.clone()), &plan).unwrap();
         assert_eq!(out.denominator, plan.denominator);
         assert!(out.origin != (0, 0) && out.image.width() < 960 / plan.denominator, "{:?}", out.origin);
-        let whole = decode(CameraImage::Jpeg(jpeg), &DecodePlan::full(960, 640)).unwrap();
+        let whole = decode(CameraImage::Jpeg(jpeg.clone()), &DecodePlan::full(960, 640)).unwrap();
         assert_eq!((whole.denominator, whole.origin, whole.image.dimensions()), (1, (0, 0), (960, 640)));
+        // a whole plan is the whole-image decoder's own pixels
+        assert!(whole.image == decode_with_image_crate(&jpeg, image::ImageFormat::Jpeg).unwrap().image);
+        // `POSEFUSE_DECODE=full` (any case) asks for the whole decode; anything else, or nothing, plans
+        assert!(!planned_unless_full(Some("full")) && !planned_unless_full(Some("FULL")));
+        assert!(planned_unless_full(None) && planned_unless_full(Some("planned")));
     }
 
     #[test]
