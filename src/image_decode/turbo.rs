@@ -154,8 +154,8 @@ fn decode_unguarded(
             return Err(Invalid("the image ends above the region".into()));
         }
         let stride = out_w as usize * 3;
-        let rows = (ry1 - ry0) as usize;
-        let mut pixels = vec![0u8; stride * rows];
+        let height = ry1 - ry0;
+        let mut pixels = vec![0u8; stride * height as usize];
         while c.output_scanline < ry1 {
             let i = (c.output_scanline - ry0) as usize;
             let mut row = pixels[i * stride..].as_mut_ptr();
@@ -165,7 +165,7 @@ fn decode_unguarded(
         }
         // the rows below the region are not needed: stop without reading them
         jpeg::jpeg_abort_decompress(c);
-        Ok(Region { pixels, width: out_w, height: ry1 - ry0, x0: xoff, y0: ry0 })
+        Ok(Region { pixels, width: out_w, height, x0: xoff, y0: ry0 })
     }
 }
 
@@ -188,7 +188,9 @@ mod tests {
         let whole = decode_region(&bytes, 1, (0, 0, 200, 120)).unwrap();
         assert_eq!((whole.width, whole.height, whole.x0, whole.y0), (200, 120, 0, 0));
         let r = decode_region(&bytes, 1, (50, 30, 130, 90)).unwrap();
-        assert!(r.y0 <= 30 && r.y0 + r.height >= 90, "rows {}..{}", r.y0, r.y0 + r.height);
+        // the rows asked for and the margin, exactly (the columns are widened to iMCU edges)
+        assert_eq!((r.y0, r.y0 + r.height), (30 - EDGE, 90 + EDGE));
+        assert_eq!(r.pixels.len(), (r.width * r.height * 3) as usize);
         assert!(r.x0 <= 50 && r.x0 + r.width >= 130, "columns {}..{}", r.x0, r.x0 + r.width);
         for y in 30 - r.y0..90 - r.y0 {
             for x in 50 - r.x0..130 - r.x0 {
