@@ -45,14 +45,12 @@ fn message(err: &jpeg::jpeg_error_mgr) -> String {
         return format!("libjpeg error {code}");
     }
     // SAFETY: libjpeg's message table holds `last_jpeg_message + 1` NUL-terminated strings.
-    let text = unsafe {
-        let p = *table.add(code as usize);
-        if p.is_null() {
-            return format!("libjpeg error {code}");
-        }
-        std::ffi::CStr::from_ptr(p).to_string_lossy().into_owned()
-    };
-    text
+    let p = unsafe { *table.add(code as usize) };
+    if p.is_null() {
+        return format!("libjpeg error {code}");
+    }
+    // SAFETY: a non-null entry of the table is a NUL-terminated string.
+    unsafe { std::ffi::CStr::from_ptr(p) }.to_string_lossy().into_owned()
 }
 
 unsafe extern "C-unwind" fn error_exit(cinfo: &mut jpeg::jpeg_common_struct) {
