@@ -1,7 +1,8 @@
 //! The view-frame bundle (`models/view`, docs/BUNDLE.md "Point frame") needs no box heading: a
 //! box turned end for end (the same box, its heading off by 180°) gives the same answer, while the
 //! default bundle, which reads the facing from the heading, answers with left and right exchanged.
-//! As the default bundle's heading stage ("Heading stage") it repairs wrong headings.
+//! As the default bundle's heading stage ("Heading stage") it repairs wrong headings, and the
+//! refinement ("Heading refinement") moves a heading some tens of degrees off toward the body's.
 
 mod server_support;
 
@@ -9,8 +10,10 @@ use std::path::PathBuf;
 use std::time::Duration;
 
 use posefuse::frame::Frame;
+use posefuse::pipeline::yaw_difference;
 use posefuse::runtime::{Runtime, RuntimeConfig};
-use posefuse::service::heading_stage::{with_estimated_headings, AGREE_DEG};
+use posefuse::service::api::{Mode, PersonPose};
+use posefuse::service::heading_stage::{with_estimated_headings, Refine, AGREE_DEG};
 use posefuse::service::Predictor;
 use server_support::*;
 
@@ -87,10 +90,56 @@ async fn the_heading_stage_answers_with_the_facings_it_predicted() {
     }
 }
 
-/// Aggregate metric of `posefuse eval --json` output.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn refinement_asks_the_point_network_again_unless_the_answer_has_settled() {
+    let with =
+        |passes, settle_deg| async move { predictor(model_dir()).await.with_refine(Refine { passes, settle_deg }) };
+    let (plain, eager, refined, settled) =
+        (with(0, 5.0).await, with(3, 0.0).await, with(3, 5.0).await, with(3, 180.0).await);
+    let frame = three_mode_frame();
+    let timeout = Duration::from_secs(30);
+    let a = plain.answer(frame.clone(), None, timeout).await.unwrap();
+    let [e, r, s] = [&eager, &refined, &settled].map(|p| p.answer(frame.clone(), None, timeout));
+    let (e, r, s) = (e.await.unwrap(), r.await.unwrap(), s.await.unwrap());
+    let modes: Vec<Mode> = a.persons.iter().map(|p| p.mode).collect();
+    assert!(modes.contains(&Mode::Fusion) && modes.contains(&Mode::Lidar), "{modes:?}");
+    let xyz = |p: &PersonPose| p.keypoints.iter().map(|k| k.xyz).collect::<Vec<_>>();
+    for (i, pa) in a.persons.iter().enumerate() {
+        let (pe, pr, ps) = (&e.persons[i], &r.persons[i], &s.persons[i]);
+        // no facing is more than 180° from its heading: the settled predictor never asks again
+        assert_eq!(xyz(pa), xyz(ps), "{}: a settled answer moved", pa.id);
+        if pa.mode == Mode::Camera {
+            assert!(xyz(pa) == xyz(pe) && xyz(pa) == xyz(pr), "{}: a camera-only answer was refined", pa.id);
+            continue;
+        }
+        // settle_deg 0: every answer is asked again
+        assert!(max_distance(&xyz(pa), &xyz(pe)) > 1e-4, "{}: not refined", pa.id);
+        // 5°: asked again exactly when the first facing is more than 5° from the box heading
+        let heading = frame.persons.iter().find(|p| p.id == pa.id).unwrap().box_3d.heading;
+        let off = yaw_difference(pa.facing.unwrap().yaw, heading).to_degrees();
+        let moved = max_distance(&xyz(pa), &xyz(pr));
+        assert_eq!(moved > 0.0, off > 5.0, "{}: facing {off:.1}° off the heading, moved {moved} m", pa.id);
+    }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_bundle_in_the_view_frame_is_not_refined() {
+    let plain = predictor(view_dir()).await;
+    let refined = predictor(view_dir()).await.with_refine(Refine { passes: 3, settle_deg: 0.0 });
+    let frame = three_mode_frame();
+    let (a, b) = (answer(&plain, frame.clone()).await, answer(&refined, frame).await);
+    assert_eq!(a.len(), b.len());
+    for ((ka, fa), (kb, fb)) in a.iter().zip(&b) {
+        assert_eq!(ka, kb);
+        assert_eq!(fa.to_bits(), fb.to_bits());
+    }
+}
+
+/// Aggregate metric of `posefuse eval --json` output (headings flipped unless `extra` says).
 fn eval_oks(data: &std::path::Path, extra: &[&str]) -> f64 {
     let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_posefuse"));
-    cmd.args(["eval", "--mode", "fusion", "--json", "--heading-noise", "180", "--data"]).arg(data).args(extra);
+    let noise = if extra.contains(&"--heading-noise") { &[][..] } else { &["--heading-noise", "180"][..] };
+    cmd.args(["eval", "--mode", "fusion", "--json", "--data"]).arg(data).args(noise).args(extra);
     cmd.arg("--model-dir").arg(model_dir()).current_dir(env!("CARGO_MANIFEST_DIR"));
     let out = cmd.output().unwrap();
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
@@ -98,16 +147,33 @@ fn eval_oks(data: &std::path::Path, extra: &[&str]) -> f64 {
     r["metrics"]["fusion"]["oks_acc_3d"].as_f64().unwrap()
 }
 
-#[test]
-fn with_every_heading_flipped_the_heading_stage_keeps_the_default_bundle_accurate() {
-    let tmp = tempfile::tempdir().unwrap();
-    let data = tmp.path().join("sim");
+/// 24 simulated street persons under `dir`.
+fn simulated(dir: &std::path::Path) -> PathBuf {
+    let data = dir.join("sim");
     let sim = std::process::Command::new(env!("CARGO_BIN_EXE_posefuse"))
         .args(["simulate", "--count", "24", "--seed", "31", "--image-size", "64", "--profile", "street", "--out"])
         .arg(&data)
         .output()
         .unwrap();
     assert!(sim.status.success(), "{}", String::from_utf8_lossy(&sim.stderr));
+    data
+}
+
+#[test]
+fn with_headings_45_degrees_off_refinement_recovers_the_default_bundles_accuracy() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = simulated(tmp.path());
+    let exact = eval_oks(&data, &["--heading-noise", "0"]);
+    let off = eval_oks(&data, &["--heading-noise", "45"]);
+    let refined = eval_oks(&data, &["--heading-noise", "45", "--heading-refine", "3"]);
+    assert!(off < exact - 0.15, "45° off: OKS@3D {off}, exact {exact}");
+    assert!(refined > off + 0.1, "refined: OKS@3D {refined}, unrefined {off}");
+}
+
+#[test]
+fn with_every_heading_flipped_the_heading_stage_keeps_the_default_bundle_accurate() {
+    let tmp = tempfile::tempdir().unwrap();
+    let data = simulated(tmp.path());
     let alone = eval_oks(&data, &[]);
     let view = view_dir();
     let staged = eval_oks(&data, &["--heading-model", view.to_str().unwrap()]);

@@ -13,7 +13,7 @@ use posefuse::runtime::RuntimeConfig;
 use posefuse::server::conn::ConnLimits;
 use posefuse::server::ServerConfig;
 use posefuse::service::admission::Sizing;
-use posefuse::service::heading_stage::AGREE_DEG;
+use posefuse::service::heading_stage::{Refine, AGREE_DEG, SETTLE_DEG};
 use posefuse::service::limits::FrameLimits;
 use posefuse::sim::street::Profile;
 use posefuse::sim::SimulateOptions;
@@ -56,9 +56,22 @@ pub struct RuntimeArgs {
     /// kept (larger: trust the detector's headings more).
     #[arg(long, env = "POSEFUSE_HEADING_AGREE_DEG", default_value_t = AGREE_DEG)]
     pub heading_agree_deg: f64,
+    /// Passes that ask a box-frame bundle's point network again with the box turned to the facing
+    /// it predicted (docs/BUNDLE.md, "Heading refinement"; 0: off).
+    #[arg(long, env = "POSEFUSE_HEADING_REFINE", default_value_t = 0)]
+    pub heading_refine: usize,
+    /// With --heading-refine: a predicted facing within this many degrees of the heading asked
+    /// at ends the refinement.
+    #[arg(long, env = "POSEFUSE_HEADING_SETTLE_DEG", default_value_t = SETTLE_DEG)]
+    pub heading_settle_deg: f64,
 }
 
 impl RuntimeArgs {
+    /// The heading refinement these flags describe.
+    pub fn refine(&self) -> Refine {
+        Refine { passes: self.heading_refine, settle_deg: self.heading_settle_deg }
+    }
+
     /// The runtime configuration these flags describe (unset sizes from the machine's cores).
     pub fn runtime_config(&self) -> RuntimeConfig {
         let sizing = Sizing::detect();
@@ -154,6 +167,7 @@ impl ServeArgs {
             frame_limits: FrameLimits { max_persons: self.max_persons, max_points: self.max_points },
             heading_model_dir: self.runtime.heading_model.clone(),
             heading_agree_deg: self.runtime.heading_agree_deg,
+            refine: self.runtime.refine(),
         }
     }
 }

@@ -46,7 +46,7 @@ pub fn cli_predictor(a: &RuntimeArgs) -> anyhow::Result<Predictor> {
     {
         anyhow::bail!("the models did not warm up (see the log)");
     }
-    let predictor = Predictor::new(runtime);
+    let predictor = Predictor::new(runtime).with_refine(a.refine());
     Ok(match stage {
         Some(s) => predictor.with_heading_stage(s, a.heading_agree_deg),
         None => predictor,

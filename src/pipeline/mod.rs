@@ -19,7 +19,7 @@ pub use fusion::{
 };
 pub use lift::{decode_heatmaps, lift, reliability};
 pub use points::{
-    from_local, gather_points, input_seed, model_frame, model_uv, point_input, select_indices, to_local, PersonPoints,
-    PointInput,
+    from_local, gather_points, input_seed, model_frame, model_uv, point_input, select_indices, to_local, turn_points,
+    PersonPoints, PointInput,
 };
 pub use prepare::{keypoints_to_vehicle, prepare_person, PreparedPerson};

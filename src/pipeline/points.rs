@@ -109,6 +109,18 @@ pub fn gather_points(points: &[[f32; 3]], b: &BoxFrame, cfg: &PipelineConfig) ->
     out
 }
 
+/// Model-input points of a box frame with heading `from` in the frame of the same box turned to
+/// heading `to` (the frames share their centre; only the yaw differs).
+pub fn turn_points(xyz: &[[f32; 3]], from: f64, to: f64) -> Vec<[f32; 3]> {
+    let (s, c) = (from - to).sin_cos();
+    xyz.iter()
+        .map(|p| {
+            let (x, y) = (p[0] as f64, p[1] as f64);
+            [(c * x - s * y) as f32, (s * x + c * y) as f32, p[2]]
+        })
+        .collect()
+}
+
 /// FNV-1a over the points' bit patterns, a 32-bit word at a time: the same points always give
 /// the same selection.
 pub fn input_seed(points: &[[f32; 3]]) -> u64 {
@@ -176,6 +188,24 @@ mod tests {
 
     fn person_box() -> BoxFrame {
         BoxFrame::new(&person_box_3d())
+    }
+
+    #[test]
+    fn turned_points_are_the_same_vehicle_points() {
+        let b = BoxFrame::new(&Box3d { heading: 0.4, ..person_box_3d() });
+        let local = [[0.2f32, -0.1, 0.5], [-0.3, 0.25, -0.7]];
+        let turned = turn_points(&local, 0.4, 2.5);
+        let other = b.turned_to(2.5);
+        for (l, t) in local.iter().zip(&turned) {
+            let v1 = b.to_vehicle([l[0] as f64, l[1] as f64, l[2] as f64]);
+            let v2 = other.to_vehicle([t[0] as f64, t[1] as f64, t[2] as f64]);
+            for a in 0..3 {
+                assert!((v1[a] - v2[a]).abs() < 1e-6, "{v1:?} {v2:?}");
+            }
+        }
+        // a quarter turn of the box turns its points a quarter turn back
+        let q = turn_points(&[[1.0, 0.0, 0.3]], 0.0, std::f64::consts::FRAC_PI_2)[0];
+        assert!(q[0].abs() < 1e-6 && (q[1] + 1.0).abs() < 1e-6 && q[2] == 0.3, "{q:?}");
     }
 
     #[test]

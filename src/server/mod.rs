@@ -56,6 +56,9 @@ pub struct ServerConfig {
     pub heading_model_dir: Option<PathBuf>,
     /// Degrees within which a box heading agreeing with the heading stage's facing is kept.
     pub heading_agree_deg: f64,
+    /// Passes asking the point network again at the facing it predicted (docs/BUNDLE.md,
+    /// "Heading refinement").
+    pub refine: crate::service::heading_stage::Refine,
 }
 
 impl ServerConfig {
@@ -87,6 +90,7 @@ impl ServerConfig {
             frame_limits: FrameLimits::default(),
             heading_model_dir: None,
             heading_agree_deg: crate::service::heading_stage::AGREE_DEG,
+            refine: crate::service::heading_stage::Refine::OFF,
         }
     }
 }
@@ -121,7 +125,8 @@ impl App {
     pub fn start(config: &ServerConfig) -> Result<App> {
         let runtime = Runtime::load(&config.model_dir, &config.runtime)?;
         let admission = Admission::new(config.decode_permits, config.admission_queue);
-        let mut predictor = Predictor::with_admission(runtime, admission).with_limits(config.frame_limits);
+        let mut predictor =
+            Predictor::with_admission(runtime, admission).with_limits(config.frame_limits).with_refine(config.refine);
         if let Some(dir) = &config.heading_model_dir {
             predictor = predictor.with_heading_stage(Runtime::load(dir, &config.runtime)?, config.heading_agree_deg);
         }

@@ -14,6 +14,27 @@ use super::api::PoseResponse;
 /// larger value trusts the detector more (docs/BUNDLE.md, "Heading stage", measures 30–90°).
 pub const AGREE_DEG: f64 = 30.0;
 
+/// Asking the point network again with the box turned to the facing it predicted, so a heading a
+/// few tens of degrees off (the stage's estimate, or the detector's) moves toward the body's own
+/// (docs/BUNDLE.md, "Heading refinement"). Only the point network runs again; the camera's
+/// heatmaps are reused.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Refine {
+    /// Passes at most (0: off).
+    pub passes: usize,
+    /// A pass whose predicted facing is within this many degrees of the heading it was asked at
+    /// ends the refinement.
+    pub settle_deg: f64,
+}
+
+impl Refine {
+    /// No refinement.
+    pub const OFF: Refine = Refine { passes: 0, settle_deg: SETTLE_DEG };
+}
+
+/// Default of [`Refine::settle_deg`].
+pub const SETTLE_DEG: f64 = 5.0;
+
 /// `frame` with each answered person's box heading replaced by the facing `first` predicted for
 /// it, where the two disagree by more than `agree_deg` degrees. Persons the first stage skipped,
 /// or answered without a facing, keep their heading.

@@ -12,6 +12,7 @@ use super::api::{
     BatchItem, ErrorDetail, KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, SkippedPerson, Timings,
 };
 use super::cameras::FrameCameras;
+use super::heading_stage::Refine;
 use super::policy::choose_mode;
 use crate::error::{Error, Result};
 use crate::frame::{Box2d, Frame, RgbPixels};
@@ -20,7 +21,8 @@ use crate::image_decode::{self, CameraImage, RawImages};
 use crate::keypoints::{K, NAMES, WAYMO_TYPES};
 use crate::pipeline::{
     decode_heatmaps, facing, fused_points, keypoints_to_vehicle, lidar_points, lift, normalize, plan_decode,
-    prepare_person, smoothed_features, CropTransform, PipelineConfig, PointInput,
+    prepare_person, smoothed_features, turn_points, yaw_difference, CropTransform, PipelineConfig, PointFrame,
+    PointInput,
 };
 use crate::runtime::{Bundle, ChainStep, JobOutput, ModelKind, Runtime};
 
@@ -34,6 +36,8 @@ pub struct Predictor {
     /// A bundle that needs no heading, asked first for the persons' facing (docs/BUNDLE.md,
     /// "Heading stage"), and how far (degrees) a box heading may be from its facing to be kept.
     heading_stage: Option<(Arc<Runtime>, f64)>,
+    /// Passes asking the point network again at the facing it predicted.
+    refine: Refine,
 }
 
 /// Everything decided before inference for one person.
@@ -94,6 +98,7 @@ impl Predictor {
             admission,
             limits: Default::default(),
             heading_stage: None,
+            refine: Refine::OFF,
         }
     }
 
@@ -101,6 +106,13 @@ impl Predictor {
     /// disagree with them by more than `agree_deg` ([`super::heading_stage::with_estimated_headings`]).
     pub fn with_heading_stage(mut self, stage: Arc<Runtime>, agree_deg: f64) -> Predictor {
         self.heading_stage = Some((stage, agree_deg));
+        self
+    }
+
+    /// The same predictor refining each box-frame answer's heading as `refine` says
+    /// ([`Refine`]; bundles whose point frame does not turn with the box ignore it).
+    pub fn with_refine(mut self, refine: Refine) -> Predictor {
+        self.refine = refine;
         self
     }
 
@@ -192,7 +204,9 @@ impl Predictor {
         .await
         .map_err(|e| Error::Runtime(format!("pre-processing task failed: {e}")))?;
         let (plan, frame_id) = plan?;
-        let on = OnRuntime { runtime: &runtime, cameras: &plan.cameras, names: &plan.names };
+        let refine =
+            if runtime.bundle().config().point_frame() == PointFrame::BoxHeading { self.refine } else { Refine::OFF };
+        let on = OnRuntime { runtime: &runtime, cameras: &plan.cameras, names: &plan.names, refine };
         let results = futures::future::try_join_all(plan.persons.into_iter().map(|p| on.run_person(p))).await?;
         let mut timings =
             Timings { decode_ms: ms(plan.decode), preprocess_ms: ms(plan.preprocess), ..Timings::default() };
@@ -279,6 +293,7 @@ struct OnRuntime<'a> {
     runtime: &'a Runtime,
     cameras: &'a [Camera],
     names: &'a [Option<String>],
+    refine: Refine,
 }
 
 impl OnRuntime<'_> {
@@ -286,12 +301,13 @@ impl OnRuntime<'_> {
         let cfg = self.runtime.bundle().config();
         let (s, hm) = (cfg.image_size, cfg.heatmap_size as usize);
         let mut times = PersonTimes::default();
-        let PersonPlan { id, camera, mode, reason, box_frame, box_2d, num_points, input, image_input } = p;
+        let PersonPlan { id, camera, mode, reason, mut box_frame, box_2d, num_points, input, image_input } = p;
         let need_crop = || Error::Runtime(format!("{id}: camera input missing"));
         let (local, scores): (Vec<[f32; 3]>, Option<Vec<f32>>) = match mode {
             Mode::Fusion => {
                 let x = image_input.ok_or_else(need_crop)?;
                 let chain_cfg = cfg.clone();
+                let kept = (self.refine.passes > 0).then(|| input.clone());
                 let PointInput { xyz, uv, .. } = input;
                 // runs on the inference worker, between the two networks
                 let then: ChainStep =
@@ -302,12 +318,22 @@ impl OnRuntime<'_> {
                 let t0 = Instant::now();
                 let scores = decode_heatmaps(h, K, hm, hm, s).into_iter().map(|(_, v)| v).collect();
                 times.preprocess += t0.elapsed();
-                (triples(&out.data), Some(scores))
+                let mut local = triples(&out.data);
+                if let Some(input) = kept {
+                    let features = smoothed_features(h, K, hm, hm, &input.uv, cfg);
+                    let ask = Ask { xyz: &input.xyz, features: Some(&features), given: box_frame.heading, cfg };
+                    (local, box_frame) = self.refine_heading(&ask, local, box_frame, &mut times).await?;
+                }
+                (local, Some(scores))
             }
             Mode::Lidar => {
                 let out = self.runtime.infer(ModelKind::PointLidar, lidar_points(&input.xyz)).await?;
                 times.add(&out);
-                (triples(&out.data), None)
+                let ask = Ask { xyz: &input.xyz, features: None, given: box_frame.heading, cfg };
+                let local = triples(&out.data);
+                let (local, frame) = self.refine_heading(&ask, local, box_frame, &mut times).await?;
+                box_frame = frame;
+                (local, None)
             }
             Mode::Camera => {
                 let x = image_input.ok_or_else(need_crop)?;
@@ -342,6 +368,46 @@ impl OnRuntime<'_> {
         let facing = facing(&vehicle);
         let pose = PersonPose { id, camera, mode, mode_reason: reason, num_points, box_2d, keypoints, facing };
         Ok((pose, times))
+    }
+}
+
+/// A person's points as the point network was first asked about them.
+struct Ask<'a> {
+    /// Model-input points in the frame of the box as given.
+    xyz: &'a [[f32; 3]],
+    /// The camera's features per point (fusion), or none (LiDAR-only).
+    features: Option<&'a [f32]>,
+    /// The heading the box was given with.
+    given: f64,
+    cfg: &'a PipelineConfig,
+}
+
+impl OnRuntime<'_> {
+    /// `local` (the answer in `frame`) refined as [`Refine`] says: while the facing it predicts is
+    /// more than `settle_deg` from the heading it was asked at, ask again at that facing.
+    async fn refine_heading(
+        &self,
+        ask: &Ask<'_>,
+        mut local: Vec<[f32; 3]>,
+        mut frame: BoxFrame,
+        times: &mut PersonTimes,
+    ) -> Result<(Vec<[f32; 3]>, BoxFrame)> {
+        for _ in 0..self.refine.passes {
+            let Some(f) = facing(&keypoints_to_vehicle(&local, &frame, ask.cfg)) else { break };
+            if yaw_difference(f.yaw, frame.heading).to_degrees() <= self.refine.settle_deg {
+                break;
+            }
+            let turned = turn_points(ask.xyz, ask.given, f.yaw);
+            let (kind, input) = match ask.features {
+                Some(features) => (ModelKind::PointFusion, fused_points(&turned, features, K)),
+                None => (ModelKind::PointLidar, lidar_points(&turned)),
+            };
+            let out = self.runtime.infer(kind, input).await?;
+            times.add(&out);
+            local = triples(&out.data);
+            frame = frame.turned_to(f.yaw);
+        }
+        Ok((local, frame))
     }
 }
 
