@@ -77,6 +77,9 @@ pub struct BenchOptions {
     pub model_dir: PathBuf,
     /// Thread settings: of the server this starts, and of the raw ceiling.
     pub runtime: RuntimeConfig,
+    /// Further `posefuse serve` flags of the server this starts (its heading stage and
+    /// refinement); the raw ceiling runs the bundle alone.
+    pub serve_args: Vec<String>,
 }
 
 /// One fixture prepared for sending.
@@ -455,6 +458,7 @@ fn spawn_server(args: &BenchOptions) -> anyhow::Result<Spawned> {
         .args(["--max-batch", &r.max_batch.to_string()])
         .args(["--batch-wait-us", &r.batch_wait.as_micros().to_string()])
         .args(["--queue-size", &r.queue_size.to_string()])
+        .args(&args.serve_args)
         .stdout(Stdio::null())
         .stderr(Stdio::null());
     if let Some(lib) = &r.ort_lib {

@@ -28,6 +28,7 @@ fn the_bench_loads_a_server_with_every_image_form() {
             no_raw: false,
             model_dir: model_dir(),
             runtime: RuntimeConfig::DEFAULT,
+            serve_args: Vec::new(),
         };
         // fails when a step gets no 200 answer, or the raw ceiling cannot run on the persons
         run_bench(args).unwrap();

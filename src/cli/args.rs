@@ -72,6 +72,20 @@ impl RuntimeArgs {
         Refine { passes: self.heading_refine, settle_deg: self.heading_settle_deg }
     }
 
+    /// The heading stage and refinement flags again, for a server this process starts.
+    pub fn heading_flags(&self) -> Vec<String> {
+        let mut flags = Vec::new();
+        if let Some(dir) = &self.heading_model {
+            flags.extend(["--heading-model".to_string(), dir.display().to_string()]);
+        }
+        flags.extend([
+            format!("--heading-agree-deg={}", self.heading_agree_deg),
+            format!("--heading-refine={}", self.heading_refine),
+            format!("--heading-settle-deg={}", self.heading_settle_deg),
+        ]);
+        flags
+    }
+
     /// The runtime configuration these flags describe (unset sizes from the machine's cores).
     pub fn runtime_config(&self) -> RuntimeConfig {
         let sizing = Sizing::detect();
@@ -316,6 +330,7 @@ impl From<BenchArgs> for BenchOptions {
     fn from(a: BenchArgs) -> BenchOptions {
         BenchOptions {
             runtime: a.runtime.runtime_config(),
+            serve_args: a.runtime.heading_flags(),
             model_dir: a.runtime.model_dir,
             url: a.url,
             server_pid: a.server_pid,
@@ -328,5 +343,30 @@ impl From<BenchArgs> for BenchOptions {
             timeout: a.timeout,
             no_raw: a.no_raw,
         }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use clap::Parser;
+
+    #[derive(Parser)]
+    struct Runtime {
+        #[command(flatten)]
+        runtime: RuntimeArgs,
+    }
+
+    #[test]
+    fn heading_flags_say_again_what_was_set() {
+        let given = ["x", "--heading-model", "models/view", "--heading-agree-deg", "45", "--heading-refine", "3"];
+        let a = Runtime::try_parse_from(given).unwrap().runtime;
+        let again = Runtime::try_parse_from(std::iter::once("x".to_string()).chain(a.heading_flags())).unwrap();
+        let b = again.runtime;
+        assert_eq!(b.heading_model, Some(PathBuf::from("models/view")));
+        assert_eq!((b.heading_agree_deg, b.heading_refine, b.heading_settle_deg), (45.0, 3, SETTLE_DEG));
+        let plain = Runtime::try_parse_from(["x"]).unwrap().runtime.heading_flags();
+        assert!(!plain.iter().any(|f| f == "--heading-model"), "{plain:?}");
+        assert!(plain.contains(&"--heading-refine=0".to_string()), "{plain:?}");
     }
 }
