@@ -6,7 +6,9 @@ sensor their back) and the median facing error. Standard library only.
   python scripts/heading_noise_table.py --bin target/release/posefuse --data DIR \\
       --bundles models/default,models/view,models/default@models/view --noise 0,15,45,90,180,uniform
 
-A bundle written MAIN@STAGE serves MAIN with STAGE as its heading stage (`--heading-model`).
+A bundle written MAIN@STAGE serves MAIN with STAGE as its heading stage (`--heading-model`);
+a suffix :refine=N adds N passes of heading refinement (`--heading-refine N`), e.g.
+models/default@models/view:refine=3.
 """
 
 from __future__ import annotations
@@ -18,11 +20,20 @@ import subprocess
 import sys
 
 
+def parse_bundle(bundle: str) -> tuple[str, str, int]:
+    """MAIN[@STAGE][:refine=N] -> (main, stage or "", refinement passes)."""
+    spec, _, refine = bundle.partition(":refine=")
+    main, _, stage = spec.partition("@")
+    return main, stage, int(refine or 0)
+
+
 def run_eval(binary: str, data: str, bundle: str, mode: str, noise: str, seed: int) -> dict:
-    main, _, stage = bundle.partition("@")
+    main, stage, refine = parse_bundle(bundle)
     cmd = [binary, "eval", "--data", data, "--model-dir", main, "--mode", mode, "--json"]
     if stage:
         cmd += ["--heading-model", stage]
+    if refine:
+        cmd += ["--heading-refine", str(refine)]
     cmd += ["--noise-seed", str(seed)]
     if noise not in ("", "0"):
         cmd += ["--heading-noise", noise]
@@ -76,8 +87,11 @@ def main(argv=None) -> int:
             for noise in a.noise.split(","):
                 report = run_eval(a.bin, a.data, bundle, mode, noise, a.noise_seed)
                 version = f"{report['model']['name']} {report['model']['version']}"
-                if "@" in bundle:
-                    version += " + heading stage " + bundle.partition("@")[2]
+                _, stage, refine = parse_bundle(bundle)
+                if stage:
+                    version += " + heading stage " + stage
+                if refine:
+                    version += f" + {refine} refinement passes"
                 rows.append({"bundle": bundle, "version": version, "mode": mode, "noise": noise, **row(report, mode)})
                 print(f"{bundle} {mode} {noise}: {rows[-1]}", file=sys.stderr)
     print(table(rows))
