@@ -307,7 +307,7 @@ impl OnRuntime<'_> {
             Mode::Fusion => {
                 let x = image_input.ok_or_else(need_crop)?;
                 let chain_cfg = cfg.clone();
-                let kept = (self.refine.passes > 0).then(|| input.clone());
+                let kept = (self.refine.passes > 0).then(|| (input.xyz.clone(), input.uv.clone()));
                 let PointInput { xyz, uv, .. } = input;
                 // runs on the inference worker, between the two networks
                 let then: ChainStep =
@@ -319,9 +319,8 @@ impl OnRuntime<'_> {
                 let scores = decode_heatmaps(h, K, hm, hm, s).into_iter().map(|(_, v)| v).collect();
                 times.preprocess += t0.elapsed();
                 let mut local = triples(&out.data);
-                if let Some(input) = kept {
-                    let features = smoothed_features(h, K, hm, hm, &input.uv, cfg);
-                    let ask = Ask { xyz: &input.xyz, features: Some(&features), given: box_frame.heading, cfg };
+                if let Some((xyz, uv)) = &kept {
+                    let ask = Ask { xyz, camera: Some((h, uv)), given: box_frame.heading, cfg };
                     (local, box_frame) = self.refine_heading(&ask, local, box_frame, &mut times).await?;
                 }
                 (local, Some(scores))
@@ -329,7 +328,7 @@ impl OnRuntime<'_> {
             Mode::Lidar => {
                 let out = self.runtime.infer(ModelKind::PointLidar, lidar_points(&input.xyz)).await?;
                 times.add(&out);
-                let ask = Ask { xyz: &input.xyz, features: None, given: box_frame.heading, cfg };
+                let ask = Ask { xyz: &input.xyz, camera: None, given: box_frame.heading, cfg };
                 let local = triples(&out.data);
                 let (local, frame) = self.refine_heading(&ask, local, box_frame, &mut times).await?;
                 box_frame = frame;
@@ -375,8 +374,8 @@ impl OnRuntime<'_> {
 struct Ask<'a> {
     /// Model-input points in the frame of the box as given.
     xyz: &'a [[f32; 3]],
-    /// The camera's features per point (fusion), or none (LiDAR-only).
-    features: Option<&'a [f32]>,
+    /// The camera's heatmaps and the points' model-input pixels (fusion), or none (LiDAR-only).
+    camera: Option<(&'a [f32], &'a [[f32; 2]])>,
     /// The heading the box was given with.
     given: f64,
     cfg: &'a PipelineConfig,
@@ -392,14 +391,20 @@ impl OnRuntime<'_> {
         mut frame: BoxFrame,
         times: &mut PersonTimes,
     ) -> Result<(Vec<[f32; 3]>, BoxFrame)> {
+        // the points' camera features, sampled again only once a second pass is needed
+        let mut features: Option<Vec<f32>> = None;
         for _ in 0..self.refine.passes {
             let Some(f) = facing(&keypoints_to_vehicle(&local, &frame, ask.cfg)) else { break };
             if yaw_difference(f.yaw, frame.heading).to_degrees() <= self.refine.settle_deg {
                 break;
             }
             let turned = turn_points(ask.xyz, ask.given, f.yaw);
-            let (kind, input) = match ask.features {
-                Some(features) => (ModelKind::PointFusion, fused_points(&turned, features, K)),
+            let (kind, input) = match ask.camera {
+                Some((heatmaps, uv)) => {
+                    let hm = ask.cfg.heatmap_size as usize;
+                    let f = features.get_or_insert_with(|| smoothed_features(heatmaps, K, hm, hm, uv, ask.cfg));
+                    (ModelKind::PointFusion, fused_points(&turned, f, K))
+                }
                 None => (ModelKind::PointLidar, lidar_points(&turned)),
             };
             let out = self.runtime.infer(kind, input).await?;
