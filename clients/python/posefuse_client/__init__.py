@@ -17,6 +17,7 @@ from .types import (
     Person,
     PersonPose,
     PoseResponse,
+    RgbPixels,
     SkippedPerson,
     Timings,
 )
@@ -40,6 +41,7 @@ __all__ = [
     "PersonPose",
     "PoseResponse",
     "PosefuseError",
+    "RgbPixels",
     "SkippedPerson",
     "Timings",
     "encode_jpeg",

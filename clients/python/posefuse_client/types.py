@@ -148,30 +148,97 @@ class Person:
 
 
 @dataclass
+class RgbPixels:
+    """Decoded RGB8 pixels, sent as they are (`image_rgb`: no JPEG or PNG on either side):
+    `width * height * 3` bytes, row by row from the top-left. The size must be the calibration's."""
+
+    width: int
+    height: int
+    pixels: bytes
+
+    def __post_init__(self) -> None:
+        self.pixels = bytes(self.pixels)
+        if len(self.pixels) != int(self.width) * int(self.height) * 3:
+            raise ValueError(
+                f"image_rgb: {len(self.pixels)} bytes, but {self.width}x{self.height} RGB8 pixels are "
+                f"{int(self.width) * int(self.height) * 3} bytes"
+            )
+
+    @classmethod
+    def from_array(cls, image: np.ndarray) -> RgbPixels:
+        """The pixels of a uint8 array [H, W, 3]."""
+        a = np.asarray(image)
+        if a.dtype != np.uint8 or a.ndim != 3 or a.shape[2] != 3:
+            raise ValueError(f"image_rgb must be a uint8 array [H, W, 3], got {a.dtype} {a.shape}")
+        return cls(a.shape[1], a.shape[0], np.ascontiguousarray(a).tobytes())
+
+    def to_array(self) -> np.ndarray:
+        """The pixels as a uint8 array [H, W, 3]."""
+        return np.frombuffer(self.pixels, np.uint8).reshape(int(self.height), int(self.width), 3)
+
+    def to_json(self) -> dict[str, Any]:
+        return {"width": int(self.width), "height": int(self.height),
+                "b64": base64.b64encode(self.pixels).decode("ascii")}
+
+    @classmethod
+    def from_json(cls, d: dict[str, Any]) -> RgbPixels:
+        return cls(int(d["width"]), int(d["height"]), base64.b64decode(d["b64"]))
+
+
+def _image_json(out: dict[str, Any], image: bytes | np.ndarray | None, image_rgb: RgbPixels | None) -> None:
+    """Writes `image` (encoded) and/or `image_rgb` (raw pixels, as given) into a JSON body."""
+    img = image_bytes(image)
+    if img is not None:
+        out["image"] = base64.b64encode(img).decode("ascii")
+    if image_rgb is not None:
+        out["image_rgb"] = image_rgb.to_json()
+
+
+def _image_proto(message, image: bytes | np.ndarray | None, image_rgb: RgbPixels | None) -> None:
+    """Sets `image` and/or `image_rgb` (with its width and height) on a PredictRequest or Camera."""
+    message.image = image_bytes(image) or b""
+    if image_rgb is not None:
+        message.image_rgb = image_rgb.pixels
+        message.image_rgb_width = int(image_rgb.width)
+        message.image_rgb_height = int(image_rgb.height)
+
+
+def _image_from_json(d: dict[str, Any]) -> tuple[bytes | None, RgbPixels | None]:
+    image = base64.b64decode(d["image"]) if d.get("image") else None
+    rgb = RgbPixels.from_json(d["image_rgb"]) if d.get("image_rgb") is not None else None
+    return image, rgb
+
+
+@dataclass
 class Camera:
-    """One camera of a frame with several: a unique name, its calibration and its image (encoded
-    JPEG/PNG bytes, or a uint8 array [H, W, 3] sent as PNG)."""
+    """One camera of a frame with several: a unique name, its calibration and its image: encoded
+    JPEG/PNG bytes or a uint8 array [H, W, 3] (sent as PNG) in `image`, or decoded pixels sent
+    as they are in `image_rgb` (one of the two)."""
 
     name: str
     calibration: Calibration
-    image: bytes | np.ndarray
+    image: bytes | np.ndarray | None = None
+    image_rgb: RgbPixels | None = None
 
     def to_json(self) -> dict[str, Any]:
-        return {
-            "name": self.name,
-            "image": base64.b64encode(image_bytes(self.image) or b"").decode("ascii"),
-            "calibration": self.calibration.to_json(),
-        }
+        out: dict[str, Any] = {"name": self.name}
+        if self.image is None and self.image_rgb is None:
+            out["image"] = ""  # the server names the camera whose image is missing
+        _image_json(out, self.image, self.image_rgb)
+        out["calibration"] = self.calibration.to_json()
+        return out
 
     @classmethod
     def from_json(cls, d: dict[str, Any]) -> Camera:
-        return cls(d["name"], Calibration.from_json(d["calibration"]), base64.b64decode(d.get("image") or ""))
+        image, rgb = _image_from_json(d)
+        return cls(d["name"], Calibration.from_json(d["calibration"]), image, rgb)
 
     def to_proto(self):
         from . import _proto as pb
 
-        return pb.Camera(name=self.name, image=image_bytes(self.image) or b"",
-                         calibration=pb.Calibration(**self.calibration.to_json()))
+        camera = pb.Camera(name=self.name, calibration=pb.Calibration(**self.calibration.to_json()))
+        _image_proto(camera, self.image, self.image_rgb)
+        return camera
 
 
 @dataclass
@@ -181,7 +248,9 @@ class Frame:
     calibration: the single camera's (None with `cameras`).
     points: [N, 3] x, y, z in the vehicle frame (metres); sent as little-endian float32.
     image: the single camera's encoded JPEG/PNG bytes, or a uint8 array [H, W, 3] (sent as PNG);
-    None: LiDAR only (or `cameras`).
+    None: LiDAR only (or `cameras`, or `image_rgb`).
+    image_rgb: the single camera's decoded pixels instead of `image`, sent as they are (no
+    re-encoding; `RgbPixels.from_array` takes a uint8 [H, W, 3] array).
     cameras: several cameras of the same instant instead of calibration and image; each person
     uses the one it names, else the one that sees it best (`PersonPose.camera` says which).
     """
@@ -193,6 +262,7 @@ class Frame:
     frame_id: str | None = None
     mode: Mode = "auto"
     cameras: list[Camera] | None = None
+    image_rgb: RgbPixels | None = None
 
     def points_bytes(self) -> bytes:
         pts = np.asarray(self.points, dtype="<f4")
@@ -205,9 +275,7 @@ class Frame:
         out: dict[str, Any] = {}
         if self.frame_id is not None:
             out["frame_id"] = self.frame_id
-        img = image_bytes(self.image)
-        if img is not None:
-            out["image"] = base64.b64encode(img).decode("ascii")
+        _image_json(out, self.image, self.image_rgb)
         if self.calibration is not None:
             out["calibration"] = self.calibration.to_json()
         if self.cameras:
@@ -226,11 +294,13 @@ class Frame:
             points = np.frombuffer(base64.b64decode(pts["b64"]), dtype="<f4").reshape(-1, 3)
         else:
             points = np.asarray(pts, dtype=np.float32).reshape(-1, 3)
+        image, image_rgb = _image_from_json(d)
         return cls(
             calibration=Calibration.from_json(d["calibration"]) if d.get("calibration") is not None else None,
             points=points,
             persons=[Person.from_json(p) for p in d["persons"]],
-            image=base64.b64decode(d["image"]) if d.get("image") else None,
+            image=image,
+            image_rgb=image_rgb,
             frame_id=d.get("frame_id"),
             mode=d.get("mode", "auto"),
             cameras=[Camera.from_json(c) for c in d["cameras"]] if d.get("cameras") else None,
@@ -250,12 +320,12 @@ class Frame:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         request = pb.PredictRequest(
             frame_id=self.frame_id or "",
-            image=image_bytes(self.image) or b"",
             cameras=[c.to_proto() for c in self.cameras or []],
             points=self.points_bytes(),
             persons=persons,
             mode=MODES.index(self.mode),
         )
+        _image_proto(request, self.image, self.image_rgb)
         if self.calibration is not None:
             request.calibration.CopyFrom(pb.Calibration(**self.calibration.to_json()))
         return request

@@ -7,8 +7,9 @@ import zlib
 import numpy as np
 import pytest
 
-from posefuse_client import Camera, Frame, PersonPose, PosefuseError, PoseResponse, encode_png
+from posefuse_client import Camera, Frame, PersonPose, PosefuseError, PoseResponse, RgbPixels, encode_png
 from posefuse_client.errors import grpc_message_code
+from posefuse_client.types import as_proto
 
 
 def test_frame_round_trips_through_json_and_proto(frame_json):
@@ -144,3 +145,51 @@ def test_the_camera_a_person_was_seen_with_is_read_back():
     pose = {"id": "p", "camera": "left", "mode": "fusion", "mode_reason": "", "num_points": 3, "keypoints": []}
     assert PersonPose.from_json(pose).camera == "left"
     assert PersonPose.from_json(dict(pose, camera=None)).camera is None
+
+
+def raw_pixels(width: int, height: int, seed: int = 0) -> np.ndarray:
+    return np.random.default_rng(seed).integers(0, 256, (height, width, 3), dtype=np.uint8)
+
+
+def test_image_rgb_is_read_and_sent_as_the_same_raw_pixels(frame_json):
+    c = frame_json["calibration"]
+    pixels = raw_pixels(c["width"], c["height"])
+    image_rgb = {"width": c["width"], "height": c["height"], "b64": base64.b64encode(pixels.tobytes()).decode()}
+    body = {k: v for k, v in frame_json.items() if k != "image"} | {"image_rgb": image_rgb}
+
+    frame = Frame.from_json(body)
+    assert frame.image is None and frame.image_rgb == RgbPixels(c["width"], c["height"], pixels.tobytes())
+    np.testing.assert_array_equal(frame.image_rgb.to_array(), pixels)
+    # JSON: the pixels go out as given (not re-encoded), and no encoded image with them.
+    sent = frame.to_json()
+    assert sent["image_rgb"] == image_rgb and "image" not in sent
+    assert Frame.from_json(sent).image_rgb == frame.image_rgb
+    # gRPC: the same bytes in image_rgb with their size; a dict in the JSON form converts the same.
+    for proto in (frame.to_proto(), as_proto(body)):
+        assert proto.image == b"" and proto.image_rgb == pixels.tobytes()
+        assert (proto.image_rgb_width, proto.image_rgb_height) == (c["width"], c["height"])
+
+
+def test_image_rgb_of_each_camera_is_kept(frame_json):
+    single = Frame.from_json(frame_json)
+    c = single.calibration
+    rgb = RgbPixels.from_array(raw_pixels(c.width, c.height, seed=1))
+    frame = Frame(None, single.points, single.persons,
+                  cameras=[Camera("front", c, single.image), Camera("left", c, image_rgb=rgb)])
+    body = frame.to_json()
+    assert "image_rgb" not in body["cameras"][0] and "image" not in body["cameras"][1]
+    assert body["cameras"][1]["image_rgb"] == rgb.to_json()
+    again = Frame.from_json(body)
+    assert again.cameras == frame.cameras and again.cameras[1].image is None
+    proto = frame.to_proto()
+    assert proto.cameras[0].image == single.image and proto.cameras[0].image_rgb == b""
+    left = proto.cameras[1]
+    assert left.image == b"" and left.image_rgb == rgb.pixels
+    assert (left.image_rgb_width, left.image_rgb_height) == (c.width, c.height)
+
+
+def test_image_rgb_of_the_wrong_size_is_refused_before_sending():
+    with pytest.raises(ValueError, match="image_rgb: 5 bytes, but 2x1 RGB8 pixels are 6 bytes"):
+        RgbPixels(2, 1, b"\0" * 5)
+    with pytest.raises(ValueError, match=r"uint8 array \[H, W, 3\]"):
+        RgbPixels.from_array(np.zeros((2, 2, 4), np.uint8))
