@@ -53,6 +53,16 @@ def test_sync_grpc_client_matches_http(server, frame_json, frames_json):
         assert_same_poses(r.response, e)
 
 
+
+def test_raw_pixel_frames_keep_their_camera_over_grpc(server, raw_frame_json):
+    """`image_rgb` travels as the proto's raw pixel bytes, from a Frame or a dict in the JSON form."""
+    with Client(server.http_url) as http:
+        expected = http.predict(raw_frame_json)
+    assert all(p.mode == "fusion" for p in expected.persons)
+    with GrpcClient(server.grpc_target) as client:
+        assert_same_poses(client.predict(Frame.from_json(raw_frame_json)), expected)
+        assert_same_poses(client.predict(raw_frame_json), expected)
+
 def test_sync_grpc_errors_carry_code_field_and_status(server, frame_json):
     with GrpcClient(server.grpc_target) as client:
         with pytest.raises(PosefuseError) as e:

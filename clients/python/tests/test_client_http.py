@@ -141,3 +141,20 @@ def test_numpy_image_and_points_are_served(server, frame_json):
         lidar = client.predict(Frame(frame.calibration, frame.points, frame.persons, image=None, mode="lidar"))
     assert all(p.mode == "lidar" for p in lidar.persons)
     assert json.dumps(frame.to_json())  # serializable
+
+
+def test_raw_pixel_frames_are_answered_with_their_camera(server, raw_frame_json):
+    """A frame JSON with `image_rgb` (decoded pixels) keeps its camera through Frame.from_json:
+    the same poses as the JSON sent as it is, in fusion, not LiDAR only."""
+    frame = Frame.from_json(raw_frame_json)
+    assert frame.image is None and frame.image_rgb is not None
+    with Client(server.http_url) as client:
+        response = client.predict(frame)
+    raw = httpx.post(f"{server.http_url}/v1/poses", json=raw_frame_json, timeout=30).json()
+    assert [p.id for p in response.persons] == [p["id"] for p in raw["persons"]]
+    assert [p.mode for p in response.persons] == [p["mode"] for p in raw["persons"]]
+    assert all(p.mode == "fusion" for p in response.persons), [(p.mode, p.mode_reason) for p in response.persons]
+    for pose, want in zip(response.persons, raw["persons"], strict=True):
+        assert np.isfinite(pose.scores).all()
+        np.testing.assert_allclose(pose.keypoints_3d, [k["xyz"] for k in want["keypoints"]], atol=1e-6)
+        np.testing.assert_allclose(pose.scores, [k["score"] for k in want["keypoints"]], atol=1e-6)
