@@ -3,16 +3,18 @@ client Triton ships on PyPI: health, metadata and inference over HTTP (JSON tens
 tensors) and gRPC, whose keypoints equal those of POST /v1/poses for the same simulated frame
 (to float32 rounding: the v2 outputs are FP32).
 
-Needs the debug binary (`cargo build`, which the Rust tests build first); skipped without it.
+The helpers (frame to tensors, native answer to outputs, comparison) are examples/tritonclient_infer.py's,
+and that script is run here too. Needs the debug binary (`cargo build`, which the Rust tests build
+first); skipped without it, except under CI=true, where a missing binary fails.
 """
 
 from __future__ import annotations
 
-import base64
 import json
 import os
 import socket
 import subprocess
+import sys
 import time
 import urllib.error
 import urllib.request
@@ -28,13 +30,19 @@ MANIFEST = json.loads((MODEL_DIR / "manifest.json").read_text())
 MODEL = MANIFEST["name"]
 
 if not BINARY.is_file():
+    if os.environ.get("CI") == "true":
+        raise RuntimeError(f"{BINARY} is not built: CI builds it before the Python tests")
     pytest.skip(f"{BINARY} is not built (run `cargo build`)", allow_module_level=True)
 
 import tritonclient.grpc as grpcclient  # noqa: E402
 import tritonclient.http as httpclient  # noqa: E402
 from tritonclient.utils import InferenceServerException  # noqa: E402
 
-K = 13
+sys.path.insert(0, str(ROOT / "examples"))
+from tritonclient_infer import K, differences, infer_inputs, v1_poses  # noqa: E402
+from tritonclient_infer import expected_outputs as _expected  # noqa: E402
+
+EXAMPLE = ROOT / "examples" / "tritonclient_infer.py"
 
 
 def _free_port() -> int:
@@ -98,88 +106,9 @@ def server(tmp_path_factory):
         log.close()
 
 
-def _v1_poses(addr: str, frame: dict) -> dict:
-    body = json.dumps(frame).encode()
-    headers = {"Content-Type": "application/json"}
-    req = urllib.request.Request(f"http://{addr}/v1/poses", data=body, headers=headers)
-    with urllib.request.urlopen(req, timeout=60) as r:
-        return json.loads(r.read())
-
-
-def _expected(frame: dict, resp: dict) -> dict:
-    """The native response as the v2 outputs: one row per requested person, NaN where absent."""
-    m = len(frame["persons"])
-    kp3 = np.full((m, K, 3), np.nan, np.float32)
-    kp2 = np.full((m, K, 2), np.nan, np.float32)
-    scores = np.full((m, K), np.nan, np.float32)
-    modes, status = ["none"] * m, [""] * m
-    for s in resp.get("skipped", []):
-        status[s["index"]] = s["error"]["code"]
-    rows = iter(i for i in range(m) if not status[i])
-    for p in resp["persons"]:
-        i = next(rows)
-        modes[i], status[i] = p["mode"], "ok"
-        for k, kp in enumerate(p["keypoints"]):
-            kp3[i, k] = kp["xyz"]
-            if kp["uv"] is not None:
-                kp2[i, k] = kp["uv"]
-            if kp["score"] is not None:
-                scores[i, k] = kp["score"]
-    return {"keypoints_3d": kp3, "keypoints_2d": kp2, "scores": scores, "mode": modes, "status": status}
-
-
-def _tensors(frame: dict, *, image_as_base64: bool) -> list[tuple[str, np.ndarray]]:
-    """The frame as the v2 inputs (docs/KSERVE.md)."""
-    c = frame["calibration"]
-    points = frame["points"]
-    if isinstance(points, dict):
-        pts = np.frombuffer(base64.b64decode(points["b64"]), dtype="<f4").reshape(-1, 3)
-    else:
-        pts = np.asarray(points, np.float32).reshape(-1, 3)
-    persons = frame["persons"]
-    b3 = np.array([[p["box_3d"][k] for k in ("center_x", "center_y", "center_z", "length", "width", "height",
-                                             "heading")] for p in persons], np.float64)
-    b2 = np.array([[p["box_2d"][k] for k in ("center_x", "center_y", "width", "height")] if p.get("box_2d")
-                   else [np.nan] * 4 for p in persons], np.float64)
-    image = frame["image"] if image_as_base64 else base64.b64decode(frame["image"])
-    return [
-        ("image", np.array([image], dtype=object)),
-        ("points", np.ascontiguousarray(pts)),
-        ("calibration_intrinsic", np.array(c["intrinsic"], np.float64)),
-        ("calibration_extrinsic", np.array(c["extrinsic"], np.float64)),
-        ("image_size", np.array([c["width"], c["height"]], np.int32)),
-        ("boxes_3d", b3),
-        ("boxes_2d", b2),
-        ("person_ids", np.array([p["id"].encode() for p in persons], dtype=object)),
-        ("mode", np.array([frame.get("mode", "auto").encode()], dtype=object)),
-    ]
-
-
-DATATYPES = {np.dtype(np.float32): "FP32", np.dtype(np.float64): "FP64", np.dtype(np.int32): "INT32",
-             np.dtype(object): "BYTES"}
-
-
-def _inputs(module, frame: dict, *, binary: bool) -> list:
-    out = []
-    for name, arr in _tensors(frame, image_as_base64=not binary):
-        t = module.InferInput(name, list(arr.shape), DATATYPES[arr.dtype])
-        if module is httpclient:
-            t.set_data_from_numpy(arr, binary_data=binary)
-        else:
-            t.set_data_from_numpy(arr)
-        out.append(t)
-    return out
-
-
 def _check(result, expected: dict) -> None:
-    as_text = [v.decode() if isinstance(v, bytes) else str(v) for v in result.as_numpy("mode").tolist()]
-    assert as_text == expected["mode"]
-    status = [v.decode() if isinstance(v, bytes) else str(v) for v in result.as_numpy("status").tolist()]
-    assert status == expected["status"]
     # The same numbers as /v1/poses, rounded to float32 (NaN where that answer has null).
-    np.testing.assert_allclose(result.as_numpy("keypoints_3d"), expected["keypoints_3d"], rtol=0, atol=1e-5)
-    np.testing.assert_allclose(result.as_numpy("keypoints_2d"), expected["keypoints_2d"], rtol=0, atol=1e-3)
-    np.testing.assert_allclose(result.as_numpy("scores"), expected["scores"], rtol=0, atol=1e-6)
+    assert differences(result, expected) == []
 
 
 def test_health_and_metadata_over_http(server):
@@ -213,40 +142,59 @@ def test_health_and_metadata_over_grpc(server):
 
 
 def test_http_json_tensors_give_the_v1_keypoints(server, frame):
-    expected = _expected(frame, _v1_poses(server, frame))
+    expected = _expected(frame, v1_poses(server, frame))
     c = httpclient.InferenceServerClient(url=server)
     outputs = [httpclient.InferRequestedOutput(n, binary_data=False)
                for n in ("keypoints_3d", "keypoints_2d", "scores", "mode", "status")]
-    result = c.infer(MODEL, _inputs(httpclient, frame, binary=False), outputs=outputs, request_id="r-json")
+    inputs = infer_inputs(httpclient, frame, binary=False)
+    result = c.infer(MODEL, inputs, outputs=outputs, request_id="r-json")
     assert result.get_response()["id"] == "r-json"
     _check(result, expected)
 
 
 def test_http_binary_tensors_give_the_v1_keypoints(server, frame):
-    expected = _expected(frame, _v1_poses(server, frame))
+    expected = _expected(frame, v1_poses(server, frame))
     c = httpclient.InferenceServerClient(url=server)
-    result = c.infer(MODEL, _inputs(httpclient, frame, binary=True))
+    result = c.infer(MODEL, infer_inputs(httpclient, frame, binary=True))
     assert all("binary_data_size" in o["parameters"] for o in result.get_response()["outputs"])
     _check(result, expected)
 
 
 def test_grpc_gives_the_v1_keypoints(server, frame):
-    expected = _expected(frame, _v1_poses(server, frame))
+    expected = _expected(frame, v1_poses(server, frame))
     c = grpcclient.InferenceServerClient(url=server)
-    result = c.infer(MODEL, _inputs(grpcclient, frame, binary=True))
+    result = c.infer(MODEL, infer_inputs(grpcclient, frame, binary=True))
     _check(result, expected)
 
 
 def test_a_bad_tensor_is_an_error_naming_it(server, frame):
     bad = httpclient.InferInput("points", [4, 2], "FP32")
     bad.set_data_from_numpy(np.zeros((4, 2), np.float32))
-    inputs = [t for t in _inputs(httpclient, frame, binary=True) if t.name() != "points"] + [bad]
+    inputs = [t for t in infer_inputs(httpclient, frame, binary=True) if t.name() != "points"] + [bad]
     with pytest.raises(InferenceServerException) as e:
         httpclient.InferenceServerClient(url=server).infer(MODEL, inputs)
     assert e.value.status() == "400" and "points" in e.value.message()
     gbad = grpcclient.InferInput("points", [4, 2], "FP32")
     gbad.set_data_from_numpy(np.zeros((4, 2), np.float32))
-    ginputs = [t for t in _inputs(grpcclient, frame, binary=True) if t.name() != "points"] + [gbad]
+    ginputs = [t for t in infer_inputs(grpcclient, frame, binary=True) if t.name() != "points"] + [gbad]
     with pytest.raises(InferenceServerException) as e:
         grpcclient.InferenceServerClient(url=server).infer(MODEL, ginputs)
     assert "INVALID_ARGUMENT" in str(e.value.status()) and "points" in e.value.message()
+
+
+def test_the_tritonclient_example_gets_the_v1_keypoints_three_ways(server):
+    """examples/tritonclient_infer.py as its docstring runs it, on the committed example frame:
+    the model config (`get_model_config`, HTTP and gRPC), then HTTP binary tensors, HTTP JSON
+    tensors (with a row of NaN tokens in boxes_2d: "no box") and gRPC, each equal to /v1/poses."""
+    run = subprocess.run(
+        [sys.executable, str(EXAMPLE), "--url", server, "--frame", str(ROOT / "examples" / "frame.json")],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )
+    lines = run.stdout.splitlines()
+    checks = ("http model config", "grpc model config", "http binary tensors", "http json tensors", "grpc")
+    results = {c: next((x for x in lines if x.startswith(f"{c}: ")), "(not run)") for c in checks}
+    failed = {c: r for c, r in results.items() if "FAILED" in r or r == "(not run)"}
+    assert not failed, run.stdout + run.stderr
+    for answer in (results[c] for c in checks[2:]):
+        assert "keypoints_3d (3, 13, 3)" in answer and answer.endswith(": equal to /v1/poses"), answer
+    assert run.returncode == 0 and lines[-1] == "all answers equal /v1/poses", run.stdout + run.stderr
