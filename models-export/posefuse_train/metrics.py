@@ -129,8 +129,15 @@ def local_to_vehicle(local: np.ndarray, box3d: np.ndarray, frame_yaw: np.ndarray
     return np.stack([x, y, z], axis=2)
 
 
+# Waymo's camera model trusts a projection only inside these radial distortion factors
+# (src/geometry/camera.rs, RADIAL_FACTOR_RANGE).
+RADIAL_FACTOR_RANGE = (0.8, 1.2)
+
+
 def project(vehicle: np.ndarray, intrinsic: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
-    """Waymo camera model: [M,K,3] vehicle points -> [M,K,2] pixels; NaN behind the camera."""
+    """Waymo camera model: [M,K,3] vehicle points -> [M,K,2] pixels; NaN without a valid
+    projection: behind the camera, or where the radial distortion factor leaves
+    RADIAL_FACTOR_RANGE (the lens polynomial folds back there), as the server's camera model."""
     p = np.asarray(vehicle, np.float64)
     ext = np.asarray(extrinsic, np.float64).reshape(-1, 4, 4)
     r, t = ext[:, :3, :3], ext[:, :3, 3]
@@ -147,4 +154,5 @@ def project(vehicle: np.ndarray, intrinsic: np.ndarray, extrinsic: np.ndarray) -
     ud = un * radial + 2.0 * p1 * un * vn + p2 * (r2 + 2.0 * un * un)
     vd = vn * radial + p1 * (r2 + 2.0 * vn * vn) + 2.0 * p2 * un * vn
     uv = np.stack([fu * ud + cu, fv * vd + cv], axis=2)
-    return np.where(front[..., None], uv, np.nan)
+    valid = front & (radial >= RADIAL_FACTOR_RANGE[0]) & (radial <= RADIAL_FACTOR_RANGE[1])
+    return np.where(valid[..., None], uv, np.nan)

@@ -100,3 +100,20 @@ def test_box_frame_matches_the_server_golden_vectors():
     # the view frame looks along the ray from the sensor to the box centre
     o = g["view_origin"]
     assert g["view"]["frame_yaw"] == pytest.approx(np.arctan2(b["center_y"] - o[1], b["center_x"] - o[0]))
+
+
+def test_projection_is_nan_where_the_lens_polynomial_folds_back():
+    # A camera at the origin looking along +x with strong barrel distortion (k2 = -0.33): at 50°
+    # off-axis the unchecked pixel folds back inside the 1920x1280 image; the server's camera
+    # model (and Waymo's) refuses it, and so must the trainer's.
+    intrinsic = np.array([[2055.0, 2055.0, 960.0, 640.0, 0.0, -0.33, 0.0, 0.0, 0.0]])
+    extrinsic = np.eye(4).reshape(1, 16)
+    bearings = np.radians([0.0, 20.0, 50.0, 60.0, 180.0])
+    pts = np.stack([10 * np.cos(bearings), 10 * np.sin(bearings), np.zeros(5)], axis=1)[None]
+    uv = metrics.project(pts, intrinsic, extrinsic)[0]
+    assert np.isfinite(uv[:2]).all()
+    assert np.isnan(uv[2:]).all()
+    # the folded pixel would have been inside the image
+    un = -np.tan(bearings[2])
+    folded = 960 + 2055 * un * (1 - 0.33 * un**4)
+    assert 0 <= folded < 1920

@@ -1,5 +1,10 @@
 //! Waymo camera model: camera frame x forward (optical axis), y left, z up;
 //! `u_n = -y/x`, `v_n = -z/x`, OpenCV distortion, then `u = f_u·u_d + c_u`, `v = f_v·v_d + c_v`.
+//!
+//! A projection is *valid* only in front of the camera and where the radial distortion factor
+//! `1 + k1·r² + k2·r⁴ + k3·r⁶` lies in [`RADIAL_FACTOR_RANGE`], as in Waymo's camera model: far
+//! off-axis a strongly barrel-distorted lens's polynomial turns back (and then negative), which
+//! folds points outside the field of view into the image (docs/ARCHITECTURE.md, "Conventions").
 
 use crate::error::{Error, Result};
 use crate::frame::CameraCalibration;
@@ -21,16 +26,23 @@ pub struct Camera {
     vehicle_to_cam: Mat4,
 }
 
+/// The radial distortion factors inside which a projection is trusted (Waymo's camera model
+/// rejects the others): the distortion polynomial is monotone there for real lenses.
+pub const RADIAL_FACTOR_RANGE: (f64, f64) = (0.8, 1.2);
+
 /// Where a vehicle-frame point lands in the image.
 #[derive(Debug, Clone, Copy, PartialEq)]
 pub struct Projection {
-    /// Pixel coordinates (meaningless when `in_front` is false).
+    /// Pixel coordinates (NaN when `in_front` is false; meaningless when `valid` is false).
     pub uv: [f64; 2],
     /// Depth along the optical axis, metres.
     pub depth: f64,
     /// The point is in front of the camera.
     pub in_front: bool,
-    /// The point is in front of the camera and inside the image.
+    /// The point is in front of the camera and its radial distortion factor is in
+    /// [`RADIAL_FACTOR_RANGE`]: only then does `uv` mean where the lens puts it.
+    pub valid: bool,
+    /// The projection is valid and inside the image.
     pub in_image: bool,
 }
 
@@ -100,11 +112,18 @@ impl Camera {
         apply(&self.cam_to_vehicle, p)
     }
 
+    /// The radial distortion factor `1 + k1·r² + k2·r⁴ + k3·r⁶` at normalized coordinates.
+    pub fn radial_factor(&self, un: f64, vn: f64) -> f64 {
+        let [k1, k2, _, _, k3] = self.dist;
+        let r2 = un * un + vn * vn;
+        1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    }
+
     /// Applies OpenCV distortion to normalized coordinates.
     pub fn distort(&self, un: f64, vn: f64) -> (f64, f64) {
-        let [k1, k2, p1, p2, k3] = self.dist;
+        let [_, _, p1, p2, _] = self.dist;
         let r2 = un * un + vn * vn;
-        let radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3));
+        let radial = self.radial_factor(un, vn);
         let ud = un * radial + 2.0 * p1 * un * vn + p2 * (r2 + 2.0 * un * un);
         let vd = vn * radial + p1 * (r2 + 2.0 * vn * vn) + 2.0 * p2 * un * vn;
         (ud, vd)
@@ -139,21 +158,31 @@ impl Camera {
     pub fn project(&self, p: [f64; 3]) -> Projection {
         let c = self.to_camera(p);
         if c[0] <= 1e-6 {
-            return Projection { uv: [f64::NAN, f64::NAN], depth: c[0], in_front: false, in_image: false };
+            return Projection {
+                uv: [f64::NAN, f64::NAN],
+                depth: c[0],
+                in_front: false,
+                valid: false,
+                in_image: false,
+            };
         }
-        let (ud, vd) = self.distort(-c[1] / c[0], -c[2] / c[0]);
+        let (un, vn) = (-c[1] / c[0], -c[2] / c[0]);
+        let radial = self.radial_factor(un, vn);
+        let valid = (RADIAL_FACTOR_RANGE.0..=RADIAL_FACTOR_RANGE.1).contains(&radial);
+        let (ud, vd) = self.distort(un, vn);
         let uv = [self.fu * ud + self.cu, self.fv * vd + self.cv];
-        let in_image = uv[0] >= 0.0 && uv[1] >= 0.0 && uv[0] < self.width as f64 && uv[1] < self.height as f64;
-        Projection { uv, depth: c[0], in_front: true, in_image }
+        let in_image = valid && uv[0] >= 0.0 && uv[1] >= 0.0 && uv[0] < self.width as f64 && uv[1] < self.height as f64;
+        Projection { uv, depth: c[0], in_front: true, valid, in_image }
     }
 
-    /// Projects vehicle-frame points into the image; `None` for those behind the camera.
+    /// Projects vehicle-frame points into the image; `None` for those without a valid projection
+    /// (behind the camera, or where the lens model folds back).
     pub fn project_points(&self, points: &[[f64; 3]]) -> Vec<Option<[f64; 2]>> {
         points
             .iter()
             .map(|&p| {
                 let pr = self.project(p);
-                pr.in_front.then_some(pr.uv)
+                pr.valid.then_some(pr.uv)
             })
             .collect()
     }
@@ -253,6 +282,78 @@ mod tests {
         let side = cam.project([5.0, 30.0, 1.0]);
         assert!(side.in_front && !side.in_image);
         assert!(cam.project([20.0, 0.0, 1.5]).in_image);
+    }
+
+    /// A Waymo-FRONT-like camera at the origin looking along +x, yawed `yaw`, with strong barrel
+    /// distortion (k2 = −0.33, as on real Waymo cameras) and no other distortion term.
+    pub(crate) fn barrel_camera(yaw: f64) -> Camera {
+        let (s, c) = yaw.sin_cos();
+        #[rustfmt::skip]
+        let extrinsic = vec![
+            c, -s, 0.0, 0.0,
+            s, c, 0.0, 0.0,
+            0.0, 0.0, 1.0, 1.5,
+            0.0, 0.0, 0.0, 1.0,
+        ];
+        Camera::from_calibration(&CameraCalibration {
+            intrinsic: vec![2055.0, 2055.0, 960.0, 640.0, 0.0, -0.33, 0.0, 0.0, 0.0],
+            extrinsic,
+            width: 1920,
+            height: 1280,
+        })
+        .unwrap()
+    }
+
+    /// A point `d` metres away at `deg` degrees left of the optical axis, at the camera's height.
+    fn at_bearing(deg: f64, d: f64) -> [f64; 3] {
+        let a = deg.to_radians();
+        [d * a.cos(), d * a.sin(), 1.5]
+    }
+
+    #[test]
+    fn projections_are_valid_where_the_lens_model_is_monotone() {
+        let cam = barrel_camera(0.0);
+        // 0° and 20°: valid and in the image; 30°: valid, beyond the half field of view (24.9°)
+        for (deg, in_image) in [(0.0, true), (20.0, true), (-20.0, true), (30.0, false)] {
+            let p = cam.project(at_bearing(deg, 10.0));
+            assert!(p.in_front && p.valid, "{deg}°: {p:?}");
+            assert_eq!(p.in_image, in_image, "{deg}°: {p:?}");
+        }
+        // 60°, 90° and behind: no valid projection, so never in the image
+        for deg in [60.0, 90.0, -90.0, 180.0] {
+            let p = cam.project(at_bearing(deg, 10.0));
+            assert!(!p.valid && !p.in_image, "{deg}°: {p:?}");
+            assert_eq!(cam.project_points(&[at_bearing(deg, 10.0)]), vec![None]);
+        }
+        assert!(!cam.project(at_bearing(180.0, 10.0)).in_front);
+    }
+
+    #[test]
+    fn a_point_the_lens_polynomial_folds_into_the_image_is_not_in_it() {
+        let cam = barrel_camera(0.0);
+        // At 50° the polynomial has turned back: the unchecked pixel lies inside the image,
+        // on the wrong side of the axis' bend. Waymo's rule (radial factor in [0.8, 1.2]) refuses it.
+        let p = cam.project(at_bearing(50.0, 10.0));
+        assert!(p.in_front && !p.valid && !p.in_image, "{p:?}");
+        assert!(p.uv[0] >= 0.0 && p.uv[0] < 1920.0 && p.uv[1] >= 0.0 && p.uv[1] < 1280.0, "{p:?}");
+        let (un, vn) = (-(50f64.to_radians().tan()), 0.0);
+        assert!(cam.radial_factor(un, vn) < RADIAL_FACTOR_RANGE.0);
+    }
+
+    #[test]
+    fn the_validity_limit_is_where_the_distorted_radius_stops_growing() {
+        // With only k2, r_d = r·(1 + k2·r⁴) turns back where 1 + 5·k2·r⁴ = 0, i.e. where the
+        // radial factor is exactly 0.8: the lower bound is the monotonicity limit.
+        let cam = barrel_camera(0.0);
+        let r_turn = (-1.0 / (5.0 * cam.dist[1])).powf(0.25);
+        assert!((cam.radial_factor(r_turn, 0.0) - RADIAL_FACTOR_RANGE.0).abs() < 1e-12);
+        let rd = |r: f64| cam.distort(r, 0.0).0;
+        assert!(rd(r_turn * 0.99) < rd(r_turn) && rd(r_turn * 1.01) < rd(r_turn));
+        // a pincushion lens is bounded from above the same way
+        let mut pin = cam.clone();
+        pin.dist = [0.4, 0.0, 0.0, 0.0, 0.0];
+        assert!(pin.project(at_bearing(30.0, 10.0)).valid);
+        assert!(!pin.project(at_bearing(40.0, 10.0)).valid, "radial factor 1 + 0.4·tan²(40°) > 1.2");
     }
 
     #[test]

@@ -131,4 +131,59 @@ mod tests {
         let s = visible_share(&front(), &b3(10.0, -5.0)).unwrap();
         assert!(s.fraction > 0.4 && s.fraction < 0.6, "{s:?}");
     }
+
+    /// A Waymo-like 1920×1280 camera at the origin, yawed `yaw`, with strong barrel distortion
+    /// (k2 = −0.33): half field of view about 24.9°.
+    fn barrel(yaw: f64) -> Camera {
+        let (s, c) = yaw.sin_cos();
+        #[rustfmt::skip]
+        let extrinsic = vec![
+            c, -s, 0.0, 0.0,
+            s, c, 0.0, 0.0,
+            0.0, 0.0, 1.0, 0.0,
+            0.0, 0.0, 0.0, 1.0,
+        ];
+        let intrinsic = vec![2055.0, 2055.0, 960.0, 640.0, 0.0, -0.33, 0.0, 0.0, 0.0];
+        Camera::from_calibration(&CameraCalibration { intrinsic, extrinsic, width: 1920, height: 1280 }).unwrap()
+    }
+
+    /// A pedestrian-size box 10 m away at `deg` degrees left of +x.
+    fn pedestrian_at(deg: f64) -> Box3d {
+        let a = deg.to_radians();
+        Box3d {
+            center_x: 10.0 * a.cos(),
+            center_y: 10.0 * a.sin(),
+            center_z: 0.0,
+            length: 0.6,
+            width: 0.6,
+            height: 1.8,
+            heading: 0.0,
+        }
+    }
+
+    #[test]
+    fn a_strongly_distorted_camera_projects_only_boxes_really_in_its_view() {
+        let front = barrel(0.0);
+        for deg in [0.0, 20.0, -20.0] {
+            let b = projected_box(&front, &pedestrian_at(deg)).unwrap_or_else(|| panic!("{deg}°"));
+            // a pedestrian at 10 m is about 200 px wide and 370 px high, not a folded sliver
+            assert!(b.width < 300.0 && b.height > 300.0 && b.height < 450.0, "{deg}°: {b:?}");
+        }
+        // 30° is beyond the half field of view; 50° is where the lens polynomial folds back into
+        // the image; 60°, 90° and behind have no valid projection at all
+        for deg in [30.0, 50.0, 60.0, 90.0, 180.0] {
+            assert!(projected_box(&front, &pedestrian_at(deg)).is_none(), "{deg}°");
+            assert!(visible_share(&front, &pedestrian_at(deg)).is_none(), "{deg}°");
+        }
+    }
+
+    #[test]
+    fn a_pedestrian_off_the_front_cameras_view_goes_to_the_camera_that_sees_it() {
+        let (front, front_left) = (barrel(0.0), barrel(45f64.to_radians()));
+        for deg in [45.0, 50.0, 57.0] {
+            assert_eq!(best_camera(&[front.clone(), front_left.clone()], &pedestrian_at(deg)), Some(1), "{deg}°");
+            assert_eq!(best_camera(std::slice::from_ref(&front), &pedestrian_at(deg)), None, "{deg}°");
+        }
+        assert_eq!(best_camera(&[front, front_left], &pedestrian_at(5.0)), Some(0));
+    }
 }

@@ -10,13 +10,13 @@ pub fn overlaps_image(b: &Box2d, width: u32, height: u32) -> bool {
     x1 > 0.0 && y1 > 0.0 && x0 < width as f64 && y0 < height as f64
 }
 
-/// The 2D box of the projected 3D box corners, when the whole box is in front of the camera and
-/// overlaps the image.
+/// The 2D box of the projected 3D box corners, when every corner has a valid projection (in
+/// front of the camera, where the lens model does not fold back) and the box overlaps the image.
 pub fn projected_box(camera: &Camera, b: &Box3d) -> Option<Box2d> {
     let mut uv = Vec::with_capacity(8);
     for c in BoxFrame::new(b).corners() {
         let p = camera.project(c);
-        if !p.in_front {
+        if !p.valid {
             return None;
         }
         uv.push(p.uv);

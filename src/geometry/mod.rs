@@ -7,6 +7,6 @@ mod image_boxes;
 pub mod rigid;
 
 pub use boxes::{box2d_contains, box2d_from_points, BoxFrame};
-pub use camera::{Camera, Projection};
+pub use camera::{Camera, Projection, RADIAL_FACTOR_RANGE};
 pub use camera_choice::{best_camera, visible_share, VisibleShare};
 pub use image_boxes::{clip_to_image, overlaps_image, projected_box};

@@ -31,13 +31,13 @@ impl PersonPoints {
     }
 }
 
-/// A vehicle-frame point's projection in model-input pixels; NaN behind the camera or without
-/// a camera and a crop.
+/// A vehicle-frame point's projection in model-input pixels; NaN without a valid projection
+/// (behind the camera, or where the lens model folds back) or without a camera and a crop.
 pub fn model_uv(p: &[f32; 3], camera: Option<&Camera>, crop: Option<&CropTransform>) -> [f32; 2] {
     match (camera, crop) {
         (Some(cam), Some(t)) => {
             let pr = cam.project([p[0] as f64, p[1] as f64, p[2] as f64]);
-            if pr.in_front {
+            if pr.valid {
                 let mp = t.to_model(pr.uv);
                 [mp[0] as f32, mp[1] as f32]
             } else {

@@ -70,7 +70,7 @@ pub fn box_2d(world: &World, p: &PlacedPerson) -> Option<Box2d> {
     let (w, h) = (cam.width as f64, cam.height as f64);
     let uv = pts.iter().filter_map(|q| {
         let pr = cam.project(*q);
-        pr.in_front.then(|| [pr.uv[0].clamp(0.0, w), pr.uv[1].clamp(0.0, h)])
+        pr.valid.then(|| [pr.uv[0].clamp(0.0, w), pr.uv[1].clamp(0.0, h)])
     });
     box2d_from_points(uv).filter(|b| b.width >= 2.0 && b.height >= 2.0)
 }
@@ -91,7 +91,7 @@ pub fn label_person<R: Rng>(
     let mut visible_3d = [false; K];
     for k in 0..K {
         let pr = world.camera.project(p.keypoints[k]);
-        if pr.in_front {
+        if pr.valid {
             uv_true[k] = pr.uv;
         }
         let (nx, ny) = match noise {
