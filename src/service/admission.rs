@@ -158,7 +158,11 @@ impl Sizing {
         }
     }
 
-    /// Defaults for this machine.
+    /// Defaults for this machine: its cores as [`std::thread::available_parallelism`] counts
+    /// them. On Linux that is the CPU affinity mask capped by the cgroup's CPU quota (cgroup v2
+    /// `cpu.max`, or v1 `cpu.cfs_quota_us` over `cpu.cfs_period_us`), rounded down and at least
+    /// 1, so a container limited to 2 CPUs is sized for 2, one limited to 1.5 CPUs for 1, and one
+    /// without a CPU limit for every core of its node (docs/OPERATIONS.md, "Sizing").
     pub fn detect() -> Sizing {
         Sizing::for_cores(std::thread::available_parallelism().map_or(1, |n| n.get()))
     }
