@@ -1,6 +1,7 @@
 //! JPEG decoders on request-size frames: the `image` crate (zune-jpeg) whole at full resolution,
-//! libjpeg-turbo whole at each DCT scale, and the planned decode the server runs (the scale and
-//! region from the frame's crop windows). Frames: `POSEFUSE_BENCH_DATA` (a simulator output directory, e.g.
+//! libjpeg-turbo whole at each DCT scale, the frame-wide plan the server ran before (one scale and
+//! region for all of a frame's crop windows, not read to the end), and the server's
+//! `decode_crops` (each window at its own scale, one pass per scale, the last read to the end). Frames: `POSEFUSE_BENCH_DATA` (a simulator output directory, e.g.
 //! `posefuse simulate --profile street`), each as written (4:4:4) and re-encoded 4:2:0 at the same
 //! quality; without it, one synthetic 1920×1280 frame. `cargo bench --bench decode`; results in
 //! BENCHMARKS.md.
@@ -11,8 +12,8 @@ static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
 use std::time::{Duration, Instant};
 
 use base64::Engine;
-use posefuse::image_decode::decode_planned;
-use posefuse::pipeline::{plan_decode, CropTransform, DecodePlan, PipelineConfig};
+use posefuse::image_decode::{decode_crops, decode_planned, CameraImage};
+use posefuse::pipeline::{plan_decode, plan_passes, CropTransform, DecodePlan, PipelineConfig};
 use posefuse::runtime::Bundle;
 
 struct Case {
@@ -73,17 +74,20 @@ fn main() {
     let rounds = if full { 5 } else { 1 };
     let cases = cases(if full { 40 } else { 2 });
     let mut plans = [0usize; 9];
+    let mut passes = 0;
     for c in &cases {
         plans[plan_decode(&c.windows, c.size.0, c.size.1).denominator as usize] += 1;
+        passes += plan_passes(&c.windows, c.size.0, c.size.1).len();
     }
     println!(
-        "{} frames, {} rounds | planned scale per frame: 1/1 {} · 1/2 {} · 1/4 {} · 1/8 {}",
+        "{} frames, {} rounds | frame-wide scale: 1/1 {} · 1/2 {} · 1/4 {} · 1/8 {} | per-window passes per frame {:.2}",
         cases.len(),
         rounds,
         plans[1],
         plans[2],
         plans[4],
-        plans[8]
+        plans[8],
+        passes as f64 / cases.len().max(1) as f64
     );
     println!("| decoder | 4:4:4 median ms | 4:2:0 median ms |");
     println!("|---|---|---|");
@@ -91,7 +95,7 @@ fn main() {
     let whole = |d: u32| -> Run {
         Box::new(move |c: &Case, j: &[u8]| {
             drop(
-                decode_planned(j, &DecodePlan { denominator: d, whole: false, ..DecodePlan::full(c.size.0, c.size.1) })
+                decode_planned(j, &DecodePlan { denominator: d, ..DecodePlan::full(c.size.0, c.size.1) }, true)
                     .unwrap(),
             )
         })
@@ -108,21 +112,15 @@ fn main() {
         ("libjpeg-turbo 1/4, whole", whole(4)),
         ("libjpeg-turbo 1/8, whole", whole(8)),
         (
-            "libjpeg-turbo, planned scale, whole",
-            Box::new(|c, j| {
-                let d = plan_decode(&c.windows, c.size.0, c.size.1).denominator;
-                drop(
-                    decode_planned(
-                        j,
-                        &DecodePlan { denominator: d, whole: false, ..DecodePlan::full(c.size.0, c.size.1) },
-                    )
-                    .unwrap(),
-                )
-            }),
+            "libjpeg-turbo, one frame-wide scale and region (before)",
+            Box::new(|c, j| drop(decode_planned(j, &plan_decode(&c.windows, c.size.0, c.size.1), false).unwrap())),
         ),
         (
-            "libjpeg-turbo, planned scale and region (the server's)",
-            Box::new(|c, j| drop(decode_planned(j, &plan_decode(&c.windows, c.size.0, c.size.1)).unwrap())),
+            "libjpeg-turbo, each window at its own scale (the server's)",
+            Box::new(|c, j| {
+                let crops = decode_crops(CameraImage::Jpeg(j.to_vec()), &c.windows, c.size.0, c.size.1, || Ok(()));
+                drop(crops.unwrap().unwrap())
+            }),
         ),
     ];
     for (name, run) in &variants {

@@ -1,17 +1,16 @@
 //! The frame's camera image, decoded only as far as its crops need.
 //!
 //! [`open`] reads the header only and refuses an image whose size disagrees with the calibration
-//! before any pixel is decoded. [`decode`] then carries out a [`DecodePlan`]
-//! (`pipeline::plan_decode`). Crops are cut from the result with [`DecodedImage::crop`], in
-//! serving and when the simulator writes fixtures and training samples alike.
-//!
-//! A JPEG is decoded as the plan says by libjpeg-turbo ([`turbo`]): at the plan's DCT scale (½,
-//! ¼ or ⅛: a reduced inverse transform per 8×8 block) and only the plan's region (rows above it
-//! skipped, rows below it never read, columns outside it not transformed), in about half the time
-//! of the whole decode on the street frames, with fusion and LiDAR accuracy unchanged
-//! (BENCHMARKS.md). A plan that is the whole image at full resolution (`DecodePlan::whole`) is
-//! decoded whole by the `image` crate (zune-jpeg), the faster whole-image decoder;
-//! `POSEFUSE_DECODE=full` (read once) decodes every JPEG that way. PNG and raw RGB8 pixels are
+//! before any pixel is decoded; a JPEG that does not end with its end-of-image marker (cut
+//! short, or followed by other bytes) is undecodable there, in every decode mode. [`decode_crops`]
+//! then cuts each crop window from the image decoded at that window's own DCT scale
+//! (`pipeline::plan_passes`): one libjpeg-turbo pass ([`turbo`]) per scale the frame's windows
+//! need (½, ¼ or ⅛: a reduced inverse transform per 8×8 block, or 1/1), each over the union of
+//! its windows' regions (rows above it skipped, columns outside it not transformed); the last
+//! pass reads the file to its end, so corrupt data anywhere is an error whatever the region.
+//! The region never changes a crop's pixels, so a person's crop is the same alone, in a crowd and
+//! under `POSEFUSE_DECODE=full` (read once: every pass decodes the whole image). The simulator
+//! cuts its training crops and fixtures through the same function. PNG and raw RGB8 pixels are
 //! used at full resolution.
 
 mod turbo;
@@ -24,7 +23,7 @@ use image::RgbImage;
 
 use crate::error::{Error, Result};
 use crate::frame::{CameraCalibration, Frame, RgbPixels};
-use crate::pipeline::{crop_rgb, scaled, CropTransform, DecodePlan};
+use crate::pipeline::{crop_rgb, plan_passes, scaled, CropTransform, DecodePlan};
 
 /// The camera image of a request, before its pixels are decoded.
 pub enum CameraImage {
@@ -71,7 +70,8 @@ impl DecodedImage {
     }
 }
 
-/// Whether JPEGs are decoded as planned (the default) rather than whole (`POSEFUSE_DECODE=full`).
+/// Whether JPEG passes decode their planned region (the default) rather than the whole image at
+/// the same scale (`POSEFUSE_DECODE=full`).
 pub fn planned_decode_enabled() -> bool {
     static PLANNED: OnceLock<bool> = OnceLock::new();
     *PLANNED.get_or_init(|| planned_unless_full(std::env::var("POSEFUSE_DECODE").ok().as_deref()))
@@ -160,7 +160,15 @@ pub fn open_camera(input: ImageInput<'_>, c: &CameraCalibration) -> Result<Camer
     Ok(image)
 }
 
+/// The end-of-image marker every complete JPEG ends with.
+const JPEG_EOI: [u8; 2] = [0xFF, 0xD9];
+
 fn jpeg_size(bytes: &[u8]) -> std::result::Result<(u32, u32), String> {
+    // A region decode never reads the rows below its crops: a file cut short (or with bytes
+    // after its end) is refused here, before any pixel, whatever the decode mode.
+    if !bytes.ends_with(&JPEG_EOI) {
+        return Err("the file does not end with the end-of-image marker (cut short, or other bytes follow it)".into());
+    }
     let mut d = jpeg_decoder::Decoder::new(bytes);
     guard(|| d.read_info().map_err(|e| e.to_string()))?;
     let info = d.info().ok_or("no frame header")?;
@@ -178,16 +186,64 @@ fn guard<T>(f: impl FnOnce() -> std::result::Result<T, String>) -> std::result::
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).unwrap_or_else(|_| Err("decoder failed".into()))
 }
 
-/// Decodes `image` as `plan` says; the error says why the pixels could not be decoded.
+/// Decodes `image` as `plan` says, reading a JPEG to its end; the error says why the pixels
+/// could not be decoded.
 pub fn decode(image: CameraImage, plan: &DecodePlan) -> std::result::Result<DecodedImage, String> {
     match image {
         CameraImage::Pixels(image) => Ok(DecodedImage::whole(image)),
-        CameraImage::Jpeg(bytes) if planned_decode_enabled() && !plan.whole => decode_planned(&bytes, plan),
-        CameraImage::Jpeg(bytes) => decode_with_image_crate(&bytes, image::ImageFormat::Jpeg),
+        CameraImage::Jpeg(bytes) => decode_planned(&bytes, &mode_plan(plan, &bytes)?, true),
         CameraImage::Png(bytes) => decode_with_image_crate(&bytes, image::ImageFormat::Png),
         CameraImage::Absent => Err("no image in the request".into()),
         CameraImage::Undecodable(why) => Err(why),
     }
+}
+
+/// `plan`, or under `POSEFUSE_DECODE=full` the whole image at its scale.
+fn mode_plan(plan: &DecodePlan, bytes: &[u8]) -> std::result::Result<DecodePlan, String> {
+    if planned_decode_enabled() {
+        return Ok(*plan);
+    }
+    let (w, h) = jpeg_size(bytes).map_err(|e| format!("image is not a decodable JPEG: {e}"))?;
+    Ok(plan.whole_image(w, h))
+}
+
+/// The crop of each window, each cut from `image` decoded at the window's own DCT scale (see the
+/// module docs): the same crop whatever the other windows are. One decoded image is held at a
+/// time; `still_wanted` is asked before each pass.
+pub fn decode_crops(
+    image: CameraImage,
+    windows: &[CropTransform],
+    width: u32,
+    height: u32,
+    mut still_wanted: impl FnMut() -> Result<()>,
+) -> Result<std::result::Result<Vec<RgbImage>, String>> {
+    let black = |t: &CropTransform| RgbImage::new(t.size, t.size);
+    let bytes = match image {
+        CameraImage::Jpeg(bytes) => bytes,
+        other => {
+            still_wanted()?;
+            return Ok(decode(other, &DecodePlan::full(width, height))
+                .map(|img| windows.iter().map(|t| img.crop(t)).collect()));
+        }
+    };
+    let mut crops: Vec<Option<RgbImage>> = vec![None; windows.len()];
+    let passes = plan_passes(windows, width, height);
+    let last = passes.len().saturating_sub(1);
+    for (i, pass) in passes.iter().enumerate() {
+        still_wanted()?;
+        let plan = match mode_plan(&pass.plan, &bytes) {
+            Ok(p) => p,
+            Err(e) => return Ok(Err(e)),
+        };
+        let img = match decode_planned(&bytes, &plan, i == last) {
+            Ok(img) => img,
+            Err(e) => return Ok(Err(e)),
+        };
+        for &w in &pass.windows {
+            crops[w] = Some(img.crop(&windows[w]));
+        }
+    }
+    Ok(Ok(crops.into_iter().zip(windows).map(|(c, t)| c.unwrap_or_else(|| black(t))).collect()))
 }
 
 fn decode_with_image_crate(bytes: &[u8], format: image::ImageFormat) -> std::result::Result<DecodedImage, String> {
@@ -197,15 +253,16 @@ fn decode_with_image_crate(bytes: &[u8], format: image::ImageFormat) -> std::res
     Ok(DecodedImage::whole(image))
 }
 
-/// A JPEG decoded as `plan` says with libjpeg-turbo: at its DCT scale, only its region. A plan
-/// without a region (no crop reads the image) decodes nothing and gives an empty image: every
-/// crop of it is black, as it would be from the whole image.
-pub fn decode_planned(bytes: &[u8], plan: &DecodePlan) -> std::result::Result<DecodedImage, String> {
+/// A JPEG decoded as `plan` says with libjpeg-turbo: at its DCT scale, only its region, and read
+/// on to the end of the file when `to_end` (corrupt data below the region is then an error too).
+/// A plan without a region (no crop reads the image) decodes nothing and gives an empty image:
+/// every crop of it is black, as it would be from the whole image.
+pub fn decode_planned(bytes: &[u8], plan: &DecodePlan, to_end: bool) -> std::result::Result<DecodedImage, String> {
     let d = plan.denominator.clamp(1, 8);
     let Some(r) = plan.region else {
         return Ok(DecodedImage { image: RgbImage::new(0, 0), denominator: d, origin: (0, 0) });
     };
-    match turbo::decode_region(bytes, d, (r.x0, r.y0, r.x1, r.y1)) {
+    match turbo::decode_region(bytes, d, (r.x0, r.y0, r.x1, r.y1), to_end) {
         Ok(part) => {
             let image = RgbImage::from_raw(part.width, part.height, part.pixels)
                 .ok_or("decoded JPEG has the wrong number of pixels")?;
@@ -237,19 +294,19 @@ mod tests {
     }
 
     fn whole_plan(d: u32, w: u32, h: u32) -> DecodePlan {
-        DecodePlan { denominator: d, whole: false, ..DecodePlan::full(w, h) }
+        DecodePlan { denominator: d, ..DecodePlan::full(w, h) }
     }
 
     #[test]
     fn scaled_decodes_have_the_planned_size_and_full_matches_the_image_crate() {
         let (_, jpeg) = pattern(333, 250);
         for d in DCT_DENOMINATORS {
-            let out = decode_planned(&jpeg, &whole_plan(d, 333, 250)).unwrap();
+            let out = decode_planned(&jpeg, &whole_plan(d, 333, 250), false).unwrap();
             assert_eq!((out.denominator, out.origin), (d, (0, 0)));
             assert_eq!(out.image.dimensions(), (333u32.div_ceil(d), 250u32.div_ceil(d)));
         }
         // two conforming decoders of the same file differ by rounding only
-        let ours = decode_planned(&jpeg, &whole_plan(1, 333, 250)).unwrap().image;
+        let ours = decode_planned(&jpeg, &whole_plan(1, 333, 250), true).unwrap().image;
         let reference = decode_with_image_crate(&jpeg, image::ImageFormat::Jpeg).unwrap().image;
         let worst = ours.as_raw().iter().zip(reference.as_raw()).map(|(a, b)| a.abs_diff(*b)).max().unwrap();
         assert!(worst <= 8, "full decodes differ by {worst}");
@@ -264,7 +321,7 @@ mod tests {
         assert_eq!(plan.denominator, 4);
         let reference = full.crop(&t);
         for d in [2, 4] {
-            let crop = decode_planned(&jpeg, &whole_plan(d, 960, 640)).unwrap().crop(&t);
+            let crop = decode_planned(&jpeg, &whole_plan(d, 960, 640), false).unwrap().crop(&t);
             let diffs: Vec<u32> =
                 crop.as_raw().iter().zip(reference.as_raw()).map(|(a, b)| a.abs_diff(*b) as u32).collect();
             let mean = diffs.iter().sum::<u32>() as f64 / diffs.len() as f64;
@@ -275,21 +332,70 @@ mod tests {
     }
 
     #[test]
-    fn a_jpeg_is_decoded_as_planned_by_default_and_a_whole_plan_whole() {
+    fn a_jpeg_is_decoded_as_planned_by_default() {
         let (_, jpeg) = pattern(960, 640);
         let t = CropTransform { x0: 301.7, y0: 122.4, scale: 64.0 / 410.0, size: 64 };
         let plan = plan_decode(&[t], 960, 640);
-        assert!(!plan.whole);
         let out = decode(CameraImage::Jpeg(jpeg.clone()), &plan).unwrap();
         assert_eq!(out.denominator, plan.denominator);
         assert!(out.origin != (0, 0) && out.image.width() < 960 / plan.denominator, "{:?}", out.origin);
         let whole = decode(CameraImage::Jpeg(jpeg.clone()), &DecodePlan::full(960, 640)).unwrap();
         assert_eq!((whole.denominator, whole.origin, whole.image.dimensions()), (1, (0, 0), (960, 640)));
-        // a whole plan is the whole-image decoder's own pixels
-        assert!(whole.image == decode_with_image_crate(&jpeg, image::ImageFormat::Jpeg).unwrap().image);
         // `POSEFUSE_DECODE=full` (any case) asks for the whole decode; anything else, or nothing, plans
         assert!(!planned_unless_full(Some("full")) && !planned_unless_full(Some("FULL")));
         assert!(planned_unless_full(None) && planned_unless_full(Some("planned")));
+    }
+
+    /// Crop windows of several sizes (so several DCT scales) spread over a 960×640 image.
+    fn crowd() -> Vec<CropTransform> {
+        [(301.7, 122.4, 410.0), (20.5, 300.2, 150.0), (611.3, 97.8, 260.0), (700.0, 420.0, 90.0), (-30.0, 500.0, 140.0)]
+            .into_iter()
+            .map(|(x0, y0, side)| CropTransform { x0, y0, scale: 64.0 / side, size: 64 })
+            .collect()
+    }
+
+    #[test]
+    fn a_crop_is_the_same_alone_in_a_crowd_and_from_the_whole_image() {
+        let (_, jpeg) = pattern(960, 640);
+        let windows = crowd();
+        let ok = || Ok(());
+        let together = decode_crops(CameraImage::Jpeg(jpeg.clone()), &windows, 960, 640, ok).unwrap().unwrap();
+        assert_eq!(together.len(), windows.len());
+        for (i, t) in windows.iter().enumerate() {
+            let alone = decode_crops(CameraImage::Jpeg(jpeg.clone()), &[*t], 960, 640, ok).unwrap().unwrap();
+            assert!(alone[0] == together[i], "window {i} differs alone and in the crowd");
+            // what `POSEFUSE_DECODE=full` decodes: the whole image at the window's own scale
+            let d = crate::pipeline::window_denominator(t);
+            let whole = decode_planned(&jpeg, &whole_plan(d, 960, 640), true).unwrap();
+            assert!(whole.crop(t) == together[i], "window {i} differs from the whole image's crop");
+        }
+        // the crowd really mixes scales (otherwise this shows nothing)
+        let scales: std::collections::BTreeSet<u32> = windows.iter().map(crate::pipeline::window_denominator).collect();
+        assert!(scales.len() >= 3, "{scales:?}");
+    }
+
+    #[test]
+    fn crops_of_pixels_and_pngs_come_from_the_whole_image_and_cancellation_stops_the_passes() {
+        let (img, jpeg) = pattern(960, 640);
+        let windows = crowd();
+        let from_pixels =
+            decode_crops(CameraImage::Pixels(img.clone()), &windows, 960, 640, || Ok(())).unwrap().unwrap();
+        for (t, c) in windows.iter().zip(&from_pixels) {
+            assert!(*c == DecodedImage::whole(img.clone()).crop(t));
+        }
+        let mut asked = 0;
+        let gone = decode_crops(CameraImage::Jpeg(jpeg), &windows, 960, 640, || {
+            asked += 1;
+            if asked > 1 {
+                Err(Error::Unavailable("gone".into()))
+            } else {
+                Ok(())
+            }
+        });
+        assert!(matches!(gone, Err(Error::Unavailable(_))), "the second pass is not decoded once nobody waits");
+        assert_eq!(asked, 2);
+        let none = decode_crops(CameraImage::Absent, &windows, 960, 640, || Ok(())).unwrap();
+        assert_eq!(none.unwrap_err(), "no image in the request");
     }
 
     #[test]
@@ -304,15 +410,15 @@ mod tests {
         let plan = plan_decode(&windows, 960, 640);
         let region = plan.region.unwrap();
         assert!(region.area() < 960 * 640 * 3 / 5, "the plan reads {region:?}");
-        let part = decode_planned(&jpeg, &plan).unwrap();
+        let part = decode_planned(&jpeg, &plan, false).unwrap();
         assert!(part.origin != (0, 0) || part.image.width() < 960u32.div_ceil(plan.denominator));
-        let whole = decode_planned(&jpeg, &whole_plan(plan.denominator, 960, 640)).unwrap();
+        let whole = decode_planned(&jpeg, &whole_plan(plan.denominator, 960, 640), true).unwrap();
         for t in &windows {
             assert_eq!(part.crop(t), whole.crop(t), "window {t:?}");
         }
         // no window on the image: nothing decoded, black crops
         let none = plan_decode(&windows[2..], 960, 640);
-        assert_eq!(decode_planned(&jpeg, &none).unwrap().crop(&windows[2]), RgbImage::new(64, 64));
+        assert_eq!(decode_planned(&jpeg, &none, true).unwrap().crop(&windows[2]), RgbImage::new(64, 64));
     }
 
     fn frame_with(image: Option<String>, w: u32, h: u32) -> Frame {
@@ -349,11 +455,31 @@ mod tests {
             let got = open(&frame_with(None, 10, 10), Some(bytes), None).unwrap();
             assert!(matches!(got, CameraImage::Undecodable(_)));
         }
-        // a JPEG cut short after its header: the header passes, the decode fails cleanly
+    }
+
+    #[test]
+    fn cut_short_corrupt_and_trailing_bytes_are_undecodable_in_every_region() {
         let (_, jpeg) = pattern(200, 120);
-        let cut = jpeg[..jpeg.len() / 3].to_vec();
-        if let CameraImage::Jpeg(b) = open(&frame_with(None, 200, 120), Some(cut), None).unwrap() {
-            let _ = decode(CameraImage::Jpeg(b), &DecodePlan::full(200, 120));
+        let why = |bytes: Vec<u8>| match open(&frame_with(None, 200, 120), Some(bytes), None).unwrap() {
+            CameraImage::Undecodable(m) => m,
+            _ => "accepted".into(),
+        };
+        // cut short (a half, or one byte less) and followed by other bytes: refused before any pixel
+        for cut in [jpeg[..jpeg.len() / 2].to_vec(), jpeg[..jpeg.len() - 1].to_vec(), [&jpeg[..], b"trailing"].concat()]
+        {
+            assert!(why(cut).contains("end-of-image marker"));
         }
+        // corrupt entropy data near the end: a region at the top still fails, as the whole decode does
+        let mut marked = jpeg.clone();
+        let at = jpeg.len() - 40;
+        marked[at..at + 2].copy_from_slice(&[0xFF, 0xD3]);
+        let CameraImage::Jpeg(bytes) = open(&frame_with(None, 200, 120), Some(marked), None).unwrap() else {
+            panic!("the header is sound")
+        };
+        let top = [CropTransform { x0: 10.0, y0: 5.0, scale: 64.0 / 40.0, size: 64 }];
+        let planned = decode_crops(CameraImage::Jpeg(bytes.clone()), &top, 200, 120, || Ok(())).unwrap();
+        assert!(planned.unwrap_err().contains("corrupt data"));
+        let whole = decode(CameraImage::Jpeg(bytes), &DecodePlan::full(200, 120));
+        assert!(whole.err().is_some_and(|e| e.contains("corrupt data")));
     }
 }

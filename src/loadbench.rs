@@ -21,7 +21,7 @@ use crate::frame::{Frame, RgbPixels};
 use crate::geometry::Camera;
 use crate::image_decode::{self, CameraImage};
 use crate::keypoints::K;
-use crate::pipeline::{fused_points, normalize, plan_decode, prepare_person, smoothed_features, CropTransform};
+use crate::pipeline::{fused_points, normalize, prepare_person, smoothed_features, CropTransform};
 use crate::runtime::RuntimeConfig;
 use crate::runtime::{env, Bundle, ModelKind, Models};
 use crate::server::grpc::proto;
@@ -351,12 +351,15 @@ fn raw_inputs(models: &mut Models, bundle: &Bundle, frames: &[Frame]) -> anyhow:
         if !matches!(image, CameraImage::Jpeg(_) | CameraImage::Png(_)) {
             bail!("a fixture without a usable image");
         }
-        let decoded =
-            image_decode::decode(image, &plan_decode(&windows, camera.width, camera.height)).map_err(|e| anyhow!(e))?;
+        let cut = image_decode::decode_crops(image, &windows, camera.width, camera.height, || Ok(()))?
+            .map_err(|e| anyhow!(e))?;
         let mut persons = Vec::new();
+        let mut cut = cut.into_iter();
         for p in prepared {
-            let (Some(t), Some(input)) = (p.crop, p.input) else { continue };
-            let x = normalize(&decoded.crop(&t), cfg);
+            let Some(_) = p.crop else { continue };
+            let crop = cut.next().ok_or_else(|| anyhow!("one crop per window"))?;
+            let Some(input) = p.input else { continue };
+            let x = normalize(&crop, cfg);
             let hm = models.run(ModelKind::Camera, 1, &x)?;
             let fused = fused_points(&input.xyz, &smoothed_features(&hm, K, h, h, &input.uv, cfg), K);
             persons.push((x, fused));

@@ -248,15 +248,13 @@ fn fixture_frames_give_the_server_the_same_crops_and_points_as_the_shards() {
     let rows: Vec<usize> = (0..COUNT).filter(|&i| fidx[[i]] == 0).collect();
     let mut with_points = 0;
     assert_eq!(rows.len(), frame.persons.len());
-    // the server's decode: header, then the DCT scale and region all the frame's windows need
+    // the server's decode: header, then each crop at its own window's DCT scale
     let windows: Vec<CropTransform> =
         frame.persons.iter().map(|p| CropTransform::for_box(&p.box_2d.unwrap(), &cfg)).collect();
-    let plan = posefuse::pipeline::plan_decode(&windows, 1920, 1280);
-    let decoded =
-        posefuse::image_decode::decode(posefuse::image_decode::open(&frame, None, None).unwrap(), &plan).unwrap();
-    for (row, person) in rows.into_iter().zip(&frame.persons) {
+    let opened = posefuse::image_decode::open(&frame, None, None).unwrap();
+    let crops = posefuse::image_decode::decode_crops(opened, &windows, 1920, 1280, || Ok(())).unwrap().unwrap();
+    for ((row, person), crop) in rows.into_iter().zip(&frame.persons).zip(&crops) {
         let b2 = person.box_2d.unwrap();
-        let crop = decoded.crop(&CropTransform::for_box(&b2, &cfg));
         let shard_crop: Vec<u8> = img.slice(ndarray::s![row, .., .., ..]).iter().copied().collect();
         assert!(crop.as_raw() == &shard_crop, "shard crop of person {} differs from the server's", person.id);
         let prep = prepare_person(Some(&image), Some(&cam), &points, &person.box_3d, Some(&b2), &cfg);

@@ -85,9 +85,16 @@ impl Drop for Decoder {
 
 /// Decodes the full-resolution region `[x0, x1) × [y0, y1)` of `bytes` at `1/denominator` (1, 2,
 /// 4 or 8). The result covers the region, scaled, and a margin around it (libjpeg also widens it
-/// to whole iMCU columns); `x0`, `y0` say where it starts.
-pub fn decode_region(bytes: &[u8], denominator: u32, rect: (u32, u32, u32, u32)) -> Result<Region, RegionError> {
-    match catch_unwind(AssertUnwindSafe(|| decode_unguarded(bytes, denominator, rect))) {
+/// to whole iMCU columns); `x0`, `y0` say where it starts. With `to_end` the rows below the region
+/// are read and skipped to the end of the image (entropy-decoded, not transformed), so corrupt
+/// data there is an error too; without it they are never read.
+pub fn decode_region(
+    bytes: &[u8],
+    denominator: u32,
+    rect: (u32, u32, u32, u32),
+    to_end: bool,
+) -> Result<Region, RegionError> {
+    match catch_unwind(AssertUnwindSafe(|| decode_unguarded(bytes, denominator, rect, to_end))) {
         Ok(r) => r,
         Err(payload) => match payload.downcast::<JpegError>() {
             Ok(e) => Err(RegionError::Invalid(e.0)),
@@ -101,6 +108,7 @@ fn decode_unguarded(
     bytes: &[u8],
     denominator: u32,
     (x0, y0, x1, y1): (u32, u32, u32, u32),
+    to_end: bool,
 ) -> Result<Region, RegionError> {
     use RegionError::{Invalid, Unsupported};
     let d = denominator.clamp(1, 8);
@@ -161,8 +169,28 @@ fn decode_unguarded(
                 return Err(Invalid("the image ended early".into()));
             }
         }
-        // the rows below the region are not needed: stop without reading them
-        jpeg::jpeg_abort_decompress(c);
+        if to_end {
+            // libjpeg-turbo skips a skip that reaches the last row without reading anything, so
+            // all but the last row are skipped (entropy-decoded, not transformed) and the last
+            // one is read
+            let rest = c.output_height - c.output_scanline;
+            if rest > 1 && jpeg::jpeg_skip_scanlines(c, rest - 1) != rest - 1 {
+                return Err(Invalid("the image ended early".into()));
+            }
+            if c.output_scanline < c.output_height {
+                let mut last = vec![0u8; stride];
+                let mut row = last.as_mut_ptr();
+                if jpeg::jpeg_read_scanlines(c, &mut row, 1) != 1 {
+                    return Err(Invalid("the image ended early".into()));
+                }
+            }
+            // reads up to the end-of-image marker; corrupt data on the way is an error (see
+            // `emit_message`)
+            jpeg::jpeg_finish_decompress(c);
+        } else {
+            // the rows below the region are not needed: stop without reading them
+            jpeg::jpeg_abort_decompress(c);
+        }
         Ok(Region { pixels, width: out_w, height, x0: xoff, y0: ry0 })
     }
 }
@@ -183,9 +211,9 @@ mod tests {
     #[test]
     fn a_region_holds_the_same_pixels_as_the_whole_decode() {
         let (_, bytes) = jpeg_of(200, 120);
-        let whole = decode_region(&bytes, 1, (0, 0, 200, 120)).unwrap();
+        let whole = decode_region(&bytes, 1, (0, 0, 200, 120), false).unwrap();
         assert_eq!((whole.width, whole.height, whole.x0, whole.y0), (200, 120, 0, 0));
-        let r = decode_region(&bytes, 1, (50, 30, 130, 90)).unwrap();
+        let r = decode_region(&bytes, 1, (50, 30, 130, 90), false).unwrap();
         // the rows asked for and the margin, exactly (the columns are widened to iMCU edges)
         assert_eq!((r.y0, r.y0 + r.height), (30 - EDGE, 90 + EDGE));
         assert_eq!(r.pixels.len(), (r.width * r.height * 3) as usize);
@@ -203,7 +231,7 @@ mod tests {
     #[test]
     fn a_scaled_decode_is_close_to_the_image_averaged() {
         let (img, bytes) = jpeg_of(160, 96);
-        let r = decode_region(&bytes, 4, (0, 0, 160, 96)).unwrap();
+        let r = decode_region(&bytes, 4, (0, 0, 160, 96), false).unwrap();
         assert_eq!((r.width, r.height), (40, 24));
         // each output pixel is about the mean of its 4×4 block (the JPEG's loss aside)
         let mut worst = 0i32;
@@ -230,15 +258,34 @@ mod tests {
             Ok(_) => "decoded".into(),
         };
         assert_eq!(
-            why(decode_region(&bytes[..bytes.len() / 2], 1, (0, 0, 64, 64))),
+            why(decode_region(&bytes[..bytes.len() / 2], 1, (0, 0, 64, 64), false)),
             "corrupt data: Premature end of JPEG file"
         );
-        assert!(decode_region(b"\xFF\xD8\xFF\xE0 not a jpeg", 1, (0, 0, 64, 64)).is_err());
+        assert!(decode_region(b"\xFF\xD8\xFF\xE0 not a jpeg", 1, (0, 0, 64, 64), false).is_err());
         // a marker in the middle of the entropy-coded data: libjpeg would warn and go on
         let mut marked = bytes.clone();
         let at = bytes.len() / 2;
         marked[at..at + 2].copy_from_slice(&[0xFF, 0xD3]);
-        assert!(why(decode_region(&marked, 2, (0, 0, 64, 64))).starts_with("corrupt data: Corrupt JPEG data"));
-        assert!(decode_region(&bytes, 1, (70, 0, 90, 64)).is_err(), "a region outside the image");
+        assert!(why(decode_region(&marked, 2, (0, 0, 64, 64), false)).starts_with("corrupt data: Corrupt JPEG data"));
+        assert!(decode_region(&bytes, 1, (70, 0, 90, 64), false).is_err(), "a region outside the image");
+    }
+
+    #[test]
+    fn corrupt_data_below_the_region_is_an_error_only_when_read_to_the_end() {
+        let (_, bytes) = jpeg_of(64, 256);
+        // a restart marker where none belongs, in the last quarter of the entropy-coded data
+        let mut marked = bytes.clone();
+        let at = bytes.len() * 7 / 8;
+        marked[at..at + 2].copy_from_slice(&[0xFF, 0xD3]);
+        let top = (0, 0, 64, 32);
+        assert!(decode_region(&marked, 1, top, false).is_ok(), "the rows below the region are never read");
+        match decode_region(&marked, 1, top, true) {
+            Err(RegionError::Invalid(m)) => assert!(m.starts_with("corrupt data"), "{m}"),
+            other => panic!("read to the end, the corrupt rows are an error: {:?}", other.map(|r| r.height)),
+        }
+        // a sound file reads to the end and gives the same region
+        let a = decode_region(&bytes, 2, top, false).unwrap();
+        let b = decode_region(&bytes, 2, top, true).unwrap();
+        assert_eq!((a.pixels, a.x0, a.y0), (b.pixels, b.x0, b.y0));
     }
 }

@@ -1,6 +1,12 @@
-//! How much of a frame's image the persons' crops need: the smallest JPEG DCT scale (1, ½, ¼, ⅛)
-//! at which every crop window still spans at least the network's S pixels, and the full-resolution
-//! region the crops read. Pure: the decoder (`crate::image_decode`) carries the plan out.
+//! How much of a camera image each crop needs: the smallest JPEG DCT scale (1, ½, ¼, ⅛) at which
+//! the crop window still spans at least the network's S pixels, and the full-resolution region
+//! the crops read. Pure: the decoder (`crate::image_decode`) carries the plan out.
+//!
+//! The scale is chosen per window, from that window alone ([`window_denominator`]), never per
+//! image: a person's crop is then the same whoever else is in the frame (docs/ARCHITECTURE.md,
+//! "A person's answer is its own"). Windows of the same scale share one decode pass
+//! ([`plan_passes`]) over the union of their regions; the region only saves work, it never
+//! changes a pixel the crops read.
 //!
 //! A crop cut from an image decoded at `1/d` uses the window [`scaled`] by `d`: pixel `(i, j)` of
 //! the scaled image covers full-resolution pixels `[d·j, d·(j+1)) × [d·i, d·(i+1))`, so the window
@@ -27,7 +33,7 @@ impl PixelRect {
     }
 }
 
-/// What to decode for one frame.
+/// One decode of an image: a DCT scale and the part of the image to decode.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct DecodePlan {
     /// Decode at `1/denominator` of full resolution (1, 2, 4 or 8).
@@ -35,22 +41,26 @@ pub struct DecodePlan {
     /// The full-resolution pixels the crops read (windows plus the resize filter's margin),
     /// clipped to the image; `None` when no window touches the image (every crop is black).
     pub region: Option<PixelRect>,
-    /// The whole image at full resolution: no reduction and so large a region that the fastest
-    /// whole-image decoder beats a partial one.
-    pub whole: bool,
 }
 
-/// Above this share of the image, a full-resolution region is decoded as the whole image:
-/// measured on the street frames, libjpeg-turbo's region decode at 1/1 is faster than
-/// zune-jpeg's whole decode up to about a quarter of the image and slower beyond (BENCHMARKS.md).
-pub const WHOLE_ABOVE_SHARE: f64 = 0.25;
-
 impl DecodePlan {
-    /// Full resolution, whole image: what a frame without crop windows, or a decoder without DCT
-    /// scaling, gets.
+    /// Full resolution, whole image.
     pub fn full(width: u32, height: u32) -> DecodePlan {
-        DecodePlan { denominator: 1, region: Some(PixelRect { x0: 0, y0: 0, x1: width, y1: height }), whole: true }
+        DecodePlan { denominator: 1, region: Some(PixelRect { x0: 0, y0: 0, x1: width, y1: height }) }
     }
+
+    /// The same scale over the whole image (`POSEFUSE_DECODE=full`): the crops' pixels are the
+    /// same, only more of the image is decoded.
+    pub fn whole_image(self, width: u32, height: u32) -> DecodePlan {
+        DecodePlan { region: self.region.map(|_| PixelRect { x0: 0, y0: 0, x1: width, y1: height }), ..self }
+    }
+}
+
+/// One decode pass and the windows (indices into the planned slice) cut from it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct DecodePass {
+    pub plan: DecodePlan,
+    pub windows: Vec<usize>,
 }
 
 /// The crop window `t` on an image decoded at `1/denominator`.
@@ -76,16 +86,21 @@ fn usable(t: &CropTransform, width: u32, height: u32) -> bool {
         && t.y0 + side > 0.0
 }
 
-/// The plan for crop windows `windows` on a `width`×`height` image: the largest reduction at
-/// which every usable window keeps at least its output size `S` in decoded pixels
-/// (`side / d ≥ S`), and the union of the windows' full-resolution reads.
+/// The largest reduction at which window `t` keeps at least its output size `S` in decoded
+/// pixels (`side / d ≥ S`): a function of the window alone.
+pub fn window_denominator(t: &CropTransform) -> u32 {
+    DCT_DENOMINATORS.into_iter().find(|&d| t.side() / d as f64 >= t.size as f64).unwrap_or(1)
+}
+
+/// The plan for crop windows `windows` that share one DCT scale on a `width`×`height` image:
+/// the largest reduction every usable window allows, and the union of the windows'
+/// full-resolution reads. [`plan_passes`] groups a frame's windows so that each keeps its own.
 pub fn plan_decode(windows: &[CropTransform], width: u32, height: u32) -> DecodePlan {
     let used: Vec<&CropTransform> = windows.iter().filter(|t| usable(t, width, height)).collect();
     if used.is_empty() {
-        return DecodePlan { denominator: 1, region: None, whole: false };
+        return DecodePlan { denominator: 1, region: None };
     }
-    let denominator =
-        DCT_DENOMINATORS.into_iter().find(|&d| used.iter().all(|t| t.side() / d as f64 >= t.size as f64)).unwrap_or(1);
+    let denominator = used.iter().map(|t| window_denominator(t)).min().unwrap_or(1);
     let (mut x0, mut y0, mut x1, mut y1) = (i64::MAX, i64::MAX, i64::MIN, i64::MIN);
     for t in &used {
         // `crop_rgb`'s read on the scaled image (window plus filter margin), in full-res pixels
@@ -99,10 +114,25 @@ pub fn plan_decode(windows: &[CropTransform], width: u32, height: u32) -> Decode
     }
     let clip = |v: i64, n: u32| v.clamp(0, n as i64) as u32;
     let region = PixelRect { x0: clip(x0, width), y0: clip(y0, height), x1: clip(x1, width), y1: clip(y1, height) };
-    if denominator == 1 && region.area() as f64 > WHOLE_ABOVE_SHARE * width as f64 * height as f64 {
-        return DecodePlan::full(width, height);
+    DecodePlan { denominator, region: (region.area() > 0).then_some(region) }
+}
+
+/// The decode passes for a frame's crop windows: one per DCT scale that some usable window
+/// needs (each window at its own [`window_denominator`]), largest reduction first. Windows that
+/// miss the image are in no pass (their crops are black).
+pub fn plan_passes(windows: &[CropTransform], width: u32, height: u32) -> Vec<DecodePass> {
+    let mut passes = Vec::new();
+    for d in DCT_DENOMINATORS {
+        let members: Vec<usize> = (0..windows.len())
+            .filter(|&i| usable(&windows[i], width, height) && window_denominator(&windows[i]) == d)
+            .collect();
+        if members.is_empty() {
+            continue;
+        }
+        let group: Vec<CropTransform> = members.iter().map(|&i| windows[i]).collect();
+        passes.push(DecodePass { plan: plan_decode(&group, width, height), windows: members });
     }
-    DecodePlan { denominator, region: (region.area() > 0).then_some(region), whole: false }
+    passes
 }
 
 #[cfg(test)]
@@ -122,9 +152,35 @@ mod tests {
         assert_eq!(plan_decode(&[window(500.0, 500.0, 512.0, 64)], 1920, 1280).denominator, 8);
         assert_eq!(plan_decode(&[window(500.0, 500.0, 128.0, 64)], 1920, 1280).denominator, 2);
         assert_eq!(plan_decode(&[window(500.0, 500.0, 127.9, 64)], 1920, 1280).denominator, 1);
-        // a second, smaller person lowers the reduction for the frame
+        // windows planned together share the finest scale among them...
         let both = [window(500.0, 500.0, 512.0, 64), window(1500.0, 300.0, 140.0, 64)];
         assert_eq!(plan_decode(&both, 1920, 1280).denominator, 2);
+        // ...but a frame's passes give each window its own
+        let passes = plan_passes(&both, 1920, 1280);
+        let scales: Vec<(u32, Vec<usize>)> = passes.iter().map(|p| (p.plan.denominator, p.windows.clone())).collect();
+        assert_eq!(scales, vec![(8, vec![0]), (2, vec![1])]);
+    }
+
+    #[test]
+    fn a_windows_pass_and_scale_do_not_depend_on_the_other_windows() {
+        let me = window(700.0, 600.0, 300.0, 64);
+        let alone = plan_passes(&[me], 1920, 1280);
+        assert_eq!(alone.len(), 1);
+        assert_eq!(alone[0].plan.denominator, window_denominator(&me));
+        let crowd =
+            [window(100.0, 100.0, 70.0, 64), me, window(1500.0, 900.0, 900.0, 64), window(1200.0, 300.0, 280.0, 64)];
+        let passes = plan_passes(&crowd, 1920, 1280);
+        let mine = passes.iter().find(|p| p.windows.contains(&1)).unwrap();
+        assert_eq!(mine.plan.denominator, alone[0].plan.denominator);
+        // its region holds its own read (the union of the pass's windows)
+        let (r, own) = (mine.plan.region.unwrap(), alone[0].plan.region.unwrap());
+        assert!(r.x0 <= own.x0 && r.y0 <= own.y0 && r.x1 >= own.x1 && r.y1 >= own.y1, "{r:?} vs {own:?}");
+        // every usable window is in exactly one pass, passes are distinct scales, coarsest first
+        let mut seen: Vec<usize> = passes.iter().flat_map(|p| p.windows.clone()).collect();
+        seen.sort();
+        assert_eq!(seen, vec![0, 1, 2, 3]);
+        let ds: Vec<u32> = passes.iter().map(|p| p.plan.denominator).collect();
+        assert!(ds.windows(2).all(|w| w[0] > w[1]), "{ds:?}");
     }
 
     #[test]
@@ -161,23 +217,20 @@ mod tests {
     }
 
     #[test]
-    fn a_full_resolution_region_over_a_quarter_of_the_image_is_the_whole_image() {
-        // two small persons far apart: full scale, and their region spans most of the frame
-        let spread = plan_decode(&[window(100.0, 300.0, 100.0, 64), window(1800.0, 1100.0, 100.0, 64)], 1920, 1280);
-        assert_eq!(spread, DecodePlan::full(1920, 1280));
-        // the same two close together keep their region
-        let close = plan_decode(&[window(900.0, 600.0, 100.0, 64), window(1000.0, 650.0, 100.0, 64)], 1920, 1280);
-        assert!(!close.whole && close.region.unwrap().area() < 1920 * 1280 / 4, "{close:?}");
-        // a reduced scale keeps its region however large (the scaled decode pays)
-        let big = plan_decode(&[window(100.0, 300.0, 300.0, 64), window(1800.0, 1000.0, 300.0, 64)], 1920, 1280);
-        assert_eq!((big.denominator, big.whole), (4, false));
+    fn the_whole_image_plan_keeps_the_scale() {
+        let p = plan_decode(&[window(900.0, 600.0, 300.0, 64)], 1920, 1280);
+        let w = p.whole_image(1920, 1280);
+        assert_eq!((w.denominator, w.region), (4, Some(PixelRect { x0: 0, y0: 0, x1: 1920, y1: 1280 })));
+        let none = DecodePlan { denominator: 1, region: None };
+        assert_eq!(none.whole_image(1920, 1280), none);
     }
 
     #[test]
     fn windows_that_miss_the_image_constrain_nothing() {
         let off = window(-500.0, 300.0, 100.0, 64);
         let nan = CropTransform { x0: f64::NAN, ..off };
-        assert_eq!(plan_decode(&[off, nan], 1920, 1280), DecodePlan { denominator: 1, region: None, whole: false });
+        assert_eq!(plan_decode(&[off, nan], 1920, 1280), DecodePlan { denominator: 1, region: None });
+        assert!(plan_passes(&[off, nan], 1920, 1280).is_empty());
         let big = window(900.0, 600.0, 600.0, 64);
         assert_eq!(plan_decode(&[off, big], 1920, 1280).denominator, 8);
         assert_eq!(plan_decode(&[], 1920, 1280).region, None);

@@ -12,7 +12,9 @@ mod prepare;
 
 pub use config::{PipelineConfig, PointFrame, NOMINAL_LIDAR_ORIGIN};
 pub use crop::{crop_rgb, normalize, CropTransform};
-pub use decode_plan::{plan_decode, scaled, DecodePlan, PixelRect, DCT_DENOMINATORS};
+pub use decode_plan::{
+    plan_decode, plan_passes, scaled, window_denominator, DecodePass, DecodePlan, PixelRect, DCT_DENOMINATORS,
+};
 pub use facing::{facing, yaw_difference, Facing, FULL_WIDTH_M};
 pub use fusion::{
     cell_index, fused_points, gaussian_kernel, lidar_points, sample_features, smooth_heatmaps, smoothed_features,

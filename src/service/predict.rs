@@ -20,9 +20,8 @@ use crate::geometry::{clip_to_image, overlaps_image, projected_box, BoxFrame, Ca
 use crate::image_decode::{self, CameraImage, RawImages};
 use crate::keypoints::{K, NAMES, WAYMO_TYPES};
 use crate::pipeline::{
-    decode_heatmaps, facing, fused_points, keypoints_to_vehicle, lidar_points, lift, normalize, plan_decode,
-    prepare_person, smoothed_features, turn_points, yaw_difference, CropTransform, PipelineConfig, PointFrame,
-    PointInput,
+    decode_heatmaps, facing, fused_points, keypoints_to_vehicle, lidar_points, lift, normalize, prepare_person,
+    smoothed_features, turn_points, yaw_difference, CropTransform, PipelineConfig, PointFrame, PointInput,
 };
 use crate::runtime::{Bundle, ChainStep, JobOutput, ModelKind, Runtime};
 
@@ -462,9 +461,6 @@ fn plan_frame(
     let t1 = Instant::now();
     let mut persons = Vec::with_capacity(frame.persons.len());
     let mut crops: Vec<Option<CropTransform>> = Vec::with_capacity(frame.persons.len());
-    // every person's window on its camera, whatever its mode: the simulator plans its fixtures'
-    // decodes from all of them, so a crop is cut from the same decode in training and in serving
-    let mut windows: Vec<Vec<CropTransform>> = vec![Vec::new(); cams.cameras.len()];
     let mut crop_budgets: Vec<_> =
         cams.cameras.iter().map(|c| super::limits::CropBudget::for_image(c.width, c.height)).collect();
     let mut skipped = Vec::new();
@@ -499,9 +495,6 @@ fn plan_frame(
             (_, None) => None,
         };
         let prepared = prepare_person(None, camera, &points, &person.box_3d, box_2d.as_ref(), cfg);
-        if let (Some(c), Some(t)) = (cam, prepared.crop) {
-            windows[c].push(t);
-        }
         let num_points = prepared.points.len();
         let Some(input) = prepared.input else {
             let why = format!("no LiDAR point lies inside the box (grown by {} m on every side)", cfg.box_margin);
@@ -552,31 +545,32 @@ fn plan_frame(
             image_input: None,
         });
     }
-    // Per camera, decode only what its crops need (`pipeline::plan_decode`), then cut them; one
-    // decoded image is held at a time.
+    // Per camera, each crop cut from the image decoded at its own DCT scale
+    // (`image_decode::decode_crops`): a person's crop does not depend on the others.
     let mut decode_pixels = Duration::ZERO;
     for (c, camera) in cams.cameras.iter().enumerate() {
-        let crops_here = || persons.iter().zip(&crops).filter(move |(p, t)| p.camera == Some(c) && t.is_some());
-        if crops_here().next().is_none() {
+        let here: Vec<usize> =
+            (0..persons.len()).filter(|&i| persons[i].camera == Some(c) && crops[i].is_some()).collect();
+        if here.is_empty() {
             continue;
         }
-        still_wanted(abandoned)?;
+        let windows: Vec<CropTransform> = here.iter().filter_map(|&i| crops[i]).collect();
         let image = std::mem::replace(&mut images[c], CameraImage::Absent);
         let t2 = Instant::now();
-        let decoded = image_decode::decode(image, &plan_decode(&windows[c], camera.width, camera.height));
+        let decoded =
+            image_decode::decode_crops(image, &windows, camera.width, camera.height, || still_wanted(abandoned))?;
         decode_pixels += t2.elapsed();
-        let here = persons.iter_mut().zip(&crops).filter(|(p, t)| p.camera == Some(c) && t.is_some());
         match decoded {
-            Ok(img) => {
-                for (p, t) in here {
+            Ok(cut) => {
+                for (&i, crop) in here.iter().zip(&cut) {
                     still_wanted(abandoned)?;
-                    p.image_input = t.map(|t| normalize(&img.crop(&t), cfg));
+                    persons[i].image_input = Some(normalize(crop, cfg));
                 }
             }
             // the header was sound but the pixels are not
             Err(why) if frame.mode == crate::frame::RequestedMode::Auto => {
-                for (p, _) in here {
-                    (p.mode, p.reason) = (Mode::Lidar, format!("camera unusable: {why}"));
+                for &i in &here {
+                    (persons[i].mode, persons[i].reason) = (Mode::Lidar, format!("camera unusable: {why}"));
                 }
             }
             Err(why) => {

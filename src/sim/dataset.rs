@@ -3,8 +3,8 @@
 //!
 //! Frames with a fixture render the full image (at image resolution inside the labelled persons'
 //! crop windows, at quarter resolution elsewhere), go through JPEG (quality 92) and crop from the
-//! image decoded exactly as the server decodes it (`image_decode`: the frame's decode plan, i.e.
-//! the DCT scale and region its crop windows need). Training-only frames render just the crop
+//! image decoded exactly as the server decodes it (`image_decode::decode_crops`: each crop at its
+//! own window's DCT scale). Training-only frames render just the crop
 //! window: at image resolution when the window is at most 2·S pixels wide (then through the same
 //! JPEG codec and planned decode), otherwise one ray per step×step block with
 //! step = ceil(side / 2S), i.e. at least 2×2 supersampling of the S×S crop; the crop is then cut
@@ -27,11 +27,10 @@ use super::street::Profile;
 use super::world::{lidar_range, sample_world, World, LIDAR_ORIGIN};
 use crate::error::{Error, Result};
 use crate::frame::{Frame, GroundTruth, Keypoints2d, Keypoints3d, Person, Points, RequestedMode};
-use crate::image_decode::{self, DecodedImage};
+use crate::image_decode;
 use crate::keypoints::K;
 use crate::pipeline::{
-    crop_rgb, input_seed, model_frame, plan_decode, prepare_person, select_indices, to_local, CropTransform,
-    PipelineConfig,
+    crop_rgb, input_seed, model_frame, prepare_person, select_indices, to_local, CropTransform, PipelineConfig,
 };
 
 /// Samples per shard.
@@ -143,15 +142,16 @@ pub fn render_crop(world: &World, t: &CropTransform) -> Result<RgbImage> {
         CropTransform { x0: (t.x0 - wx0 as f64) / s, y0: (t.y0 - wy0 as f64) / s, scale: t.scale * s, size: t.size };
     if step == 1 {
         let jpeg = encode_jpeg(&patch)?;
-        return Ok(planned_decode(&jpeg, &[local], patch.width(), patch.height())?.crop(&local));
+        let mut crops = planned_crops(&jpeg, &[local], patch.width(), patch.height())?;
+        return crops.pop().ok_or_else(|| Error::Io("jpeg decode: no crop".into()));
     }
     Ok(crop_rgb(&patch, &local))
 }
 
-/// A JPEG decoded the way the server decodes a request whose crop windows are `windows`.
-pub fn planned_decode(jpeg: &[u8], windows: &[CropTransform], width: u32, height: u32) -> Result<DecodedImage> {
-    let plan = plan_decode(windows, width, height);
-    image_decode::decode(image_decode::CameraImage::Jpeg(jpeg.to_vec()), &plan)
+/// The crops of `windows` from a JPEG, cut the way the server cuts a request's crops
+/// (`image_decode::decode_crops`: each at its own DCT scale).
+pub fn planned_crops(jpeg: &[u8], windows: &[CropTransform], width: u32, height: u32) -> Result<Vec<RgbImage>> {
+    image_decode::decode_crops(image_decode::CameraImage::Jpeg(jpeg.to_vec()), windows, width, height, || Ok(()))?
         .map_err(|e| Error::Io(format!("jpeg decode: {e}")))
 }
 
@@ -238,17 +238,17 @@ pub fn simulate_frame(
     let full = if with_fixture {
         let windows: Vec<CropTransform> = labelled.iter().map(|l| CropTransform::for_box(&l.2.box2d, cfg)).collect();
         let jpeg = encode_jpeg(&render_frame_image(&world, &windows))?;
-        Some((planned_decode(&jpeg, &windows, cam.width, cam.height)?, jpeg))
+        Some((planned_crops(&jpeg, &windows, cam.width, cam.height)?, jpeg))
     } else {
         None
     };
     let mut out = FrameResult { index, samples: Vec::new(), stats: Vec::new(), fixture: None };
     let mut fixture_persons = Vec::new();
-    for (li, p, labels, on_person) in labelled {
+    for (n, (li, p, labels, on_person)) in labelled.into_iter().enumerate() {
         let prepared = prepare_person(None, Some(cam), &points, &p.box3d, Some(&labels.box2d), cfg);
         let t = CropTransform::for_box(&labels.box2d, cfg);
         let crop = match &full {
-            Some((decoded, _)) => decoded.crop(&t),
+            Some((crops, _)) => crops[n].clone(),
             None => render_crop(&world, &t)?,
         };
         let points_uv = prepared.points.model_uv(Some(cam), Some(&t));

@@ -8,17 +8,17 @@ use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 use anyhow::Context;
-use image::RgbImage;
 use rayon::prelude::*;
 
 use super::range::{range_image_points, LaserCalibration, SweepPoses};
 use super::reader::{FrameData, FrameLabels, Segment};
 use super::schema::{keypoint_index, LASER_TOP};
+use crate::error::{Error, Result};
 use crate::frame::{Box2d, Box3d, Frame, GroundTruth, Keypoints2d, Keypoints3d, Person, Points, RequestedMode};
 use crate::geometry::{BoxFrame, Camera};
 use crate::keypoints::K;
 use crate::pipeline::{model_frame, prepare_person, to_local, CropTransform, PipelineConfig, PointFrame};
-use crate::sim::dataset::{decode_jpeg, sample_points, Sample, SamplePoints, ShardWriter};
+use crate::sim::dataset::{sample_points, Sample, SamplePoints, ShardWriter};
 use crate::sim::world::LIDAR_ORIGIN;
 
 /// Version written to the output's `dataset.json`.
@@ -91,11 +91,12 @@ fn f32x<const N: usize>(v: [f64; N]) -> [f32; N] {
     v.map(|x| x as f32)
 }
 
-/// One prepared training sample, through the pipeline's `prepare_person` as the simulator's.
+/// One prepared training sample, through the pipeline's `prepare_person` as the simulator's, its
+/// crop cut from the camera's JPEG as the server cuts it (`image_decode::decode_crops`).
 /// `kp2d_image_true` holds the labels (real data has no exact projections).
 #[allow(clippy::too_many_arguments)]
 pub fn person_sample(
-    image: &RgbImage,
+    jpeg: &[u8],
     cam: &Camera,
     points: &[[f32; 3]],
     sensor: [f64; 3],
@@ -103,10 +104,12 @@ pub fn person_sample(
     cfg: &PipelineConfig,
     points_cap: usize,
     frame_index: i32,
-) -> Sample {
-    let prepared = prepare_person(Some(image), Some(cam), points, &l.box3d, Some(&l.box2d), cfg);
+) -> Result<Sample> {
+    let prepared = prepare_person(None, Some(cam), points, &l.box3d, Some(&l.box2d), cfg);
     let t = CropTransform::for_box(&l.box2d, cfg);
-    let crop = prepared.crop_rgb.clone().unwrap_or_else(|| crate::pipeline::crop_rgb(image, &t));
+    let crop = crate::sim::dataset::planned_crops(jpeg, &[t], cam.width, cam.height)?
+        .pop()
+        .ok_or_else(|| Error::Io("jpeg decode: no crop".into()))?;
     let points_uv = prepared.points.model_uv(Some(cam), Some(&t));
     let bf = &prepared.box_frame;
     let SamplePoints { points_xyz, points_uv, serve_xyz, serve_uv } =
@@ -114,7 +117,7 @@ pub fn person_sample(
     let b = &l.box3d;
     let calib = cam.to_calibration();
     let v = [b.center_x - sensor[0], b.center_y - sensor[1]];
-    Sample {
+    Ok(Sample {
         image: crop.into_raw(),
         points_xyz,
         points_uv,
@@ -136,7 +139,7 @@ pub fn person_sample(
         frame_yaw: model_frame(bf, cfg).heading as f32,
         range_m: (v[0] * v[0] + v[1] * v[1]).sqrt() as f32,
         frame_index,
-    }
+    })
 }
 
 /// All returns of a frame (every laser, both returns) in the vehicle frame at the frame's
@@ -256,8 +259,6 @@ fn process_frame(
         let Some(jpeg) = f.images.get(cam_name) else {
             continue;
         };
-        let image = decode_jpeg(jpeg)
-            .with_context(|| format!("segment {}: image of camera {cam_name} at {}", seg.name, f.timestamp))?;
         let mut persons = Vec::new();
         for (c, p) in &objs {
             seen.insert(p.id.clone());
@@ -265,7 +266,11 @@ fn process_frame(
             if let Some(k2) = &c.keypoints {
                 let l = PersonLabelsIn::new(p.box3d, c.box2d, k2, k3.map_or(&[][..], |v| v.as_slice()));
                 if l.trainable() {
-                    out.samples.push(person_sample(&image, cam, &points, sensor, &l, cfg, o.points_cap, index as i32));
+                    let sample = person_sample(jpeg, cam, &points, sensor, &l, cfg, o.points_cap, index as i32)
+                        .with_context(|| {
+                            format!("segment {}: image of camera {cam_name} at {}", seg.name, f.timestamp)
+                        })?;
+                    out.samples.push(sample);
                 }
             }
             persons.push(Person {

@@ -25,7 +25,7 @@ use crate::frame::{Box2d, Box3d, CameraCalibration};
 use crate::geometry::Camera;
 use crate::keypoints::K;
 use crate::pipeline::PipelineConfig;
-use crate::sim::dataset::{decode_jpeg, encode_jpeg, frame_rng, persons_in_frame, render_frame_image, Sample};
+use crate::sim::dataset::{encode_jpeg, frame_rng, persons_in_frame, render_frame_image, Sample};
 use crate::sim::labels::label_person;
 use crate::sim::math::{hash, madd, V3};
 use crate::sim::street::Profile;
@@ -438,7 +438,6 @@ pub fn simulate_frame(
     for (cam_name, cid, kps) in &f.camera_hkp {
         let cam = &rig.cameras[*cam_name as usize - 1].1;
         let Some(jpeg) = f.images.iter().find(|i| i.0 == *cam_name) else { continue };
-        let image = decode_jpeg(&jpeg.1)?;
         let Some(b2) = f.camera_boxes.iter().find(|b| &b.1 == cid) else { continue };
         let Some(a) = f.associations.iter().find(|a| &a.1 == cid) else { continue };
         let Some(b3) = f.lidar_boxes.iter().find(|b| b.0 == a.2) else { continue };
@@ -447,7 +446,7 @@ pub fn simulate_frame(
         if !labels.trainable() {
             continue;
         }
-        samples.push(person_sample(&image, cam, &points, sensor, &labels, cfg, 1024, index as i32));
+        samples.push(person_sample(&jpeg.1, cam, &points, sensor, &labels, cfg, 1024, index as i32)?);
     }
     f.points = points;
     Ok((f, samples))
