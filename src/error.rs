@@ -25,6 +25,10 @@ pub enum Error {
     /// No such route or resource.
     #[error("not found: {0}")]
     NotFound(String),
+    /// An administrative request where administration is not allowed (the serving port without
+    /// the admin token, docs/OPERATIONS.md "Administration").
+    #[error("forbidden: {0}")]
+    Forbidden(String),
     /// The request did not finish within its deadline.
     #[error("request timed out after {0} ms")]
     Timeout(u64),
@@ -81,6 +85,7 @@ impl Error {
             Error::PayloadTooLarge { .. } => "payload_too_large",
             Error::Overloaded => "overloaded",
             Error::NotFound(_) => "not_found",
+            Error::Forbidden(_) => "forbidden",
             Error::Timeout(_) => "timeout",
             Error::Unavailable(_) => "unavailable",
             Error::Bundle(_) => "bundle_error",

@@ -194,13 +194,15 @@ async fn at_the_connection_cap_the_idlest_goes_and_busy_ones_are_kept() {
     s.shutdown().await.unwrap();
 }
 
-fn copy_bundle(version: &str) -> tempfile::TempDir {
-    let d = tempfile::tempdir().unwrap();
+/// A copy of the default bundle as `repository/version`, with that version in its manifest.
+fn copy_bundle(repository: &std::path::Path, version: &str) -> std::path::PathBuf {
+    let d = repository.join(version);
+    std::fs::create_dir_all(&d).unwrap();
     for e in std::fs::read_dir(model_dir()).unwrap() {
         let p = e.unwrap().path();
-        std::fs::copy(&p, d.path().join(p.file_name().unwrap())).unwrap();
+        std::fs::copy(&p, d.join(p.file_name().unwrap())).unwrap();
     }
-    let p = d.path().join("manifest.json");
+    let p = d.join("manifest.json");
     let mut m: Value = serde_json::from_str(&std::fs::read_to_string(&p).unwrap()).unwrap();
     m["version"] = json!(version);
     std::fs::write(p, serde_json::to_string_pretty(&m).unwrap()).unwrap();
@@ -213,10 +215,14 @@ fn version_of(v: &Value) -> String {
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn reload_under_load_fails_no_request_and_a_broken_bundle_leaves_the_old_one() {
-    let s = Arc::new(start(config()).await);
+    let repository = tempfile::tempdir().unwrap();
+    let mut c = config();
+    c.admin.repository = Some(repository.path().to_path_buf());
+    let (s, admin) = start_with_admin(c, true).await;
+    let (s, admin) = (Arc::new(s), admin.unwrap());
     let original = reqwest::get(s.url("/v1/models")).await.unwrap().json::<Value>().await.unwrap();
     let original = original["version"].as_str().unwrap().to_string();
-    let next = copy_bundle("reloaded-1");
+    copy_bundle(repository.path(), "reloaded-1");
     // Steady load: 3 clients, one frame after another, until told to stop.
     let stop = Arc::new(std::sync::atomic::AtomicBool::new(false));
     let (ok, failed) = (Arc::new(AtomicUsize::new(0)), Arc::new(AtomicUsize::new(0)));
@@ -238,7 +244,8 @@ async fn reload_under_load_fails_no_request_and_a_broken_bundle_leaves_the_old_o
         }));
     }
     tokio::time::sleep(Duration::from_millis(300)).await;
-    let (status, r) = post(&s, "/v1/models:reload", &json!({"model_dir": next.path()})).await;
+    let reload_url = format!("{admin}/v1/models:reload");
+    let (status, r) = post_to(&reload_url, &json!({"model_dir": "reloaded-1"})).await;
     assert_eq!(status, 200, "{r}");
     assert_eq!(
         (r["model"]["version"].as_str(), r["previous"]["version"].as_str()),
@@ -246,14 +253,14 @@ async fn reload_under_load_fails_no_request_and_a_broken_bundle_leaves_the_old_o
     );
     tokio::time::sleep(Duration::from_millis(300)).await;
     // A broken bundle: the reason comes back, the serving one stays.
-    let broken = copy_bundle("broken");
-    std::fs::write(broken.path().join("point_lidar.onnx"), b"not onnx").unwrap();
-    let (status, r) = post(&s, "/v1/models:reload", &json!({"model_dir": broken.path()})).await;
+    let broken = copy_bundle(repository.path(), "broken");
+    std::fs::write(broken.join("point_lidar.onnx"), b"not onnx").unwrap();
+    let (status, r) = post_to(&reload_url, &json!({"model_dir": "broken"})).await;
     assert_eq!(status, 422, "{r}");
     assert_eq!(r["error"]["field"], "model_dir");
     assert!(r["error"]["message"].as_str().unwrap().contains("point_lidar"), "{r}");
     // Reload of the serving directory (an empty body).
-    let r = reqwest::Client::new().post(s.url("/v1/models:reload")).send().await.unwrap();
+    let r = reqwest::Client::new().post(&reload_url).send().await.unwrap();
     assert_eq!(r.status(), 200);
     tokio::time::sleep(Duration::from_millis(300)).await;
     stop.store(true, Ordering::SeqCst);

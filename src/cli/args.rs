@@ -156,13 +156,33 @@ pub struct ServeArgs {
     /// LiDAR points per frame at most (422 beyond).
     #[arg(long, env = "POSEFUSE_MAX_POINTS", default_value_t = FrameLimits::DEFAULT.max_points)]
     pub max_points: usize,
+    /// Serve administration (`POST /v1/models:reload`) without a token on this address, meant
+    /// for loopback (e.g. 127.0.0.1:9090); off by default: the serving port refuses it (403).
+    #[arg(long, env = "POSEFUSE_ADMIN_ADDR")]
+    pub admin_addr: Option<SocketAddr>,
+    /// A file whose first line is a token (at least 16 characters) that admits administration on
+    /// the serving port as `Authorization: Bearer <token>` (else POSEFUSE_ADMIN_TOKEN).
+    #[arg(long)]
+    pub admin_token_file: Option<PathBuf>,
+    /// The directory a reload may name bundles in (`{"model_dir": "v2"}` is DIR/v2); without it
+    /// a reload only reloads the serving bundle.
+    #[arg(long, env = "POSEFUSE_MODEL_REPOSITORY")]
+    pub model_repository: Option<PathBuf>,
+    /// The model name of the Open Inference Protocol (`/v2/models/NAME`), e.g. the
+    /// InferenceService's; default: the bundle manifest's name.
+    #[arg(long, env = "POSEFUSE_MODEL_NAME")]
+    pub model_name: Option<String>,
 }
 
 impl ServeArgs {
     /// The server configuration these flags describe (0 for decode permits and the admission
-    /// queue: sized from the cores at start-up).
-    pub fn server_config(&self) -> ServerConfig {
-        ServerConfig {
+    /// queue: sized from the cores at start-up); reads the admin token file.
+    pub fn server_config(&self) -> posefuse::Result<ServerConfig> {
+        let token = posefuse::server::admin::read_token(
+            self.admin_token_file.as_deref(),
+            std::env::var(posefuse::server::admin::TOKEN_ENV).ok(),
+        )?;
+        Ok(ServerConfig {
             model_dir: self.runtime.model_dir.clone(),
             runtime: self.runtime.runtime_config(),
             body_limit: self.body_limit,
@@ -182,7 +202,13 @@ impl ServeArgs {
             heading_model_dir: self.runtime.heading_model.clone(),
             heading_agree_deg: self.runtime.heading_agree_deg,
             refine: self.runtime.refine(),
-        }
+            admin: posefuse::server::admin::AdminConfig {
+                addr: self.admin_addr,
+                token,
+                repository: self.model_repository.clone(),
+            },
+            v2_model_name: self.model_name.clone(),
+        })
     }
 }
 

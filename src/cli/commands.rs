@@ -30,7 +30,7 @@ pub fn tokio_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
 pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
     super::allocator::purge_freed_memory_at_once();
     init_tracing(a.log_json);
-    let config = a.server_config();
+    let config = a.server_config()?;
     tracing::info!(addr = %a.addr, ?config, "effective configuration");
     tokio_runtime()?.block_on(posefuse::server::serve_with_signals(config, a.addr))
 }

@@ -14,6 +14,7 @@ pub fn http_status(e: &Error) -> StatusCode {
         Error::PayloadTooLarge { .. } => StatusCode::PAYLOAD_TOO_LARGE,
         Error::Overloaded => StatusCode::TOO_MANY_REQUESTS,
         Error::NotFound(_) => StatusCode::NOT_FOUND,
+        Error::Forbidden(_) => StatusCode::FORBIDDEN,
         Error::Timeout(_) => StatusCode::GATEWAY_TIMEOUT,
         Error::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
         Error::Bundle(_) | Error::Runtime(_) | Error::Io(_) => StatusCode::INTERNAL_SERVER_ERROR,
@@ -27,6 +28,7 @@ pub fn grpc_code(e: &Error) -> tonic::Code {
         Error::InsufficientData { .. } => tonic::Code::FailedPrecondition,
         Error::PayloadTooLarge { .. } | Error::Overloaded => tonic::Code::ResourceExhausted,
         Error::NotFound(_) => tonic::Code::NotFound,
+        Error::Forbidden(_) => tonic::Code::PermissionDenied,
         Error::Timeout(_) => tonic::Code::DeadlineExceeded,
         Error::Unavailable(_) => tonic::Code::Unavailable,
         Error::Bundle(_) | Error::Runtime(_) | Error::Io(_) => tonic::Code::Internal,
@@ -96,6 +98,7 @@ mod tests {
             (Error::PayloadTooLarge { limit: 1 }, 413, tonic::Code::ResourceExhausted),
             (Error::Overloaded, 429, tonic::Code::ResourceExhausted),
             (Error::Timeout(5), 504, tonic::Code::DeadlineExceeded),
+            (Error::Forbidden("admin".into()), 403, tonic::Code::PermissionDenied),
             (Error::Unavailable("warming up".into()), 503, tonic::Code::Unavailable),
             (Error::Runtime("x".into()), 500, tonic::Code::Internal),
         ];

@@ -213,12 +213,7 @@ pub fn frame_to_proto(f: &Frame, image: Vec<u8>) -> Result<proto::PredictRequest
             .map(|p| proto::Person {
                 id: p.id.clone(),
                 camera: p.camera.clone().unwrap_or_default(),
-                box_2d: p.box_2d.map(|b| proto::Box2d {
-                    center_x: b.center_x,
-                    center_y: b.center_y,
-                    width: b.width,
-                    height: b.height,
-                }),
+                box_2d: p.box_2d.map(box2d_to_proto),
                 box_3d: Some(proto::Box3d {
                     center_x: p.box_3d.center_x,
                     center_y: p.box_3d.center_y,
@@ -279,6 +274,7 @@ pub fn response_to_proto(r: PoseResponse) -> proto::PredictResponse {
                     .collect(),
                 facing: p.facing.map(|f| proto::Facing { yaw: f.yaw, confidence: f.confidence }),
                 camera: p.camera.unwrap_or_default(),
+                box_2d: p.box_2d.map(box2d_to_proto),
             })
             .collect(),
         skipped: r
@@ -377,4 +373,9 @@ impl Posefuse for GrpcService {
         count("PredictStream", tonic::Code::Ok);
         Ok(Response::new(Box::pin(out)))
     }
+}
+
+/// A 2D box as its message.
+fn box2d_to_proto(b: crate::frame::Box2d) -> proto::Box2d {
+    proto::Box2d { center_x: b.center_x, center_y: b.center_y, width: b.width, height: b.height }
 }

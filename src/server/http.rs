@@ -44,6 +44,19 @@ pub fn router(state: AppState) -> Router {
         .with_state(state)
 }
 
+/// The admin listener's routes (`--admin-addr`): model reload without a token, nothing else.
+pub fn admin_router(state: AppState) -> Router {
+    Router::new()
+        .route("/v1/models:reload", post(super::reload::reload_admin))
+        .fallback(not_found)
+        .method_not_allowed_fallback(method_not_allowed)
+        .layer(axum::extract::DefaultBodyLimit::max(ADMIN_BODY_LIMIT))
+        .with_state(state)
+}
+
+/// A reload body names one directory.
+const ADMIN_BODY_LIMIT: usize = 64 * 1024;
+
 async fn count_requests(req: Request, next: Next) -> Response {
     let route =
         req.extensions().get::<MatchedPath>().map_or_else(|| "unmatched".to_string(), |m| m.as_str().to_string());
@@ -53,15 +66,23 @@ async fn count_requests(req: Request, next: Next) -> Response {
     resp
 }
 
+/// Whether a path is the Open Inference Protocol's, whose errors have its own shape.
+fn is_v2(path: &str) -> bool {
+    path == "/v2" || path.starts_with("/v2/")
+}
+
 async fn method_not_allowed(req: Request) -> Response {
     let e = Error::Malformed(format!("method {} is not allowed on {}", req.method(), req.uri().path()));
-    let mut resp = e.into_response();
+    let mut resp = if is_v2(req.uri().path()) { super::errors::v2_response(&e) } else { e.into_response() };
     *resp.status_mut() = StatusCode::METHOD_NOT_ALLOWED;
     resp
 }
 
-async fn not_found(req: Request) -> Error {
-    Error::NotFound(format!("no route for {} {}", req.method(), req.uri().path()))
+async fn not_found(req: Request) -> Response {
+    if is_v2(req.uri().path()) {
+        return super::kserve::rest::not_found(req.uri().clone()).await;
+    }
+    Error::NotFound(format!("no route for {} {}", req.method(), req.uri().path())).into_response()
 }
 
 /// JSON body extractor: content type, size limit and parse errors all answer with the error body

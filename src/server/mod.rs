@@ -3,6 +3,7 @@
 //! drain. Every request is answered by [`crate::service::Predictor`]; nothing here decides
 //! anything about a pose.
 
+pub mod admin;
 pub mod conn;
 pub mod errors;
 pub mod grpc;
@@ -59,6 +60,10 @@ pub struct ServerConfig {
     /// Passes asking the point network again at the facing it predicted (docs/BUNDLE.md,
     /// "Heading refinement").
     pub refine: crate::service::heading_stage::Refine,
+    /// Who may reload models, where, and from which repository (`server::admin`).
+    pub admin: admin::AdminConfig,
+    /// The Open Inference Protocol's model name (`--model-name`); the manifest's when `None`.
+    pub v2_model_name: Option<String>,
 }
 
 impl ServerConfig {
@@ -91,6 +96,8 @@ impl ServerConfig {
             heading_model_dir: None,
             heading_agree_deg: crate::service::heading_stage::AGREE_DEG,
             refine: crate::service::heading_stage::Refine::OFF,
+            admin: admin::AdminConfig::default(),
+            v2_model_name: None,
         }
     }
 }
@@ -107,6 +114,10 @@ pub struct AppState {
     pub drain: CancellationToken,
     /// Swaps bundles while serving.
     pub reloader: Arc<reload::Reloader>,
+    /// Who may ask it to (`server::admin`).
+    pub admin: Arc<admin::AdminConfig>,
+    /// The Open Inference Protocol's model name when not the manifest's (`--model-name`).
+    pub v2_model_name: Option<Arc<str>>,
     /// Warm-up done and the gRPC health status published (what /readyz reports).
     pub ready: Arc<AtomicBool>,
     pub prometheus: Option<metrics_exporter_prometheus::PrometheusHandle>,
@@ -139,6 +150,8 @@ impl App {
             shutting_down: Arc::new(AtomicBool::new(false)),
             drain: CancellationToken::new(),
             reloader: Arc::new(reloader),
+            admin: Arc::new(config.admin.clone()),
+            v2_model_name: config.v2_model_name.as_deref().map(Arc::from),
             ready: Arc::new(AtomicBool::new(false)),
             prometheus: metrics::install(),
         };
@@ -158,6 +171,18 @@ impl App {
     /// The predictor (runtime access for tests and tools).
     pub fn predictor(&self) -> &Predictor {
         &self.state.predictor
+    }
+
+    /// Serves the admin routes (model reload, no token) on `listener` until the drain starts:
+    /// the `--admin-addr` listener, bounded like the serving port's but to a few connections.
+    pub fn serve_admin(&self, listener: tokio::net::TcpListener) -> tokio::task::JoinHandle<()> {
+        let (router, drain) = (http::admin_router(self.state.clone()), self.state.drain.clone());
+        let limits = conn::ConnLimits { max_connections: ADMIN_CONNECTIONS, ..self.conn.clone() };
+        let timeout = self.drain_timeout;
+        tracing::info!(addr = ?listener.local_addr().ok(), "serving administration (model reload)");
+        tokio::spawn(async move {
+            conn::serve(listener, router, limits, Arc::new(conn::Registry::default()), drain, timeout).await;
+        })
     }
 
     /// Serves on `listener` until `shutdown` completes, then drains: readiness goes 503 /
@@ -195,6 +220,9 @@ impl App {
                         }
                     }
                     if is_grpc(&req) {
+                        if let Some(status) = kserve::grpc::unimplemented(req.uri().path()) {
+                            return Ok(status.into_http());
+                        }
                         g.oneshot(req).await
                     } else {
                         h.oneshot(req).await
@@ -262,6 +290,9 @@ impl App {
     }
 }
 
+/// Connections the admin listener keeps open at once (operators, not traffic).
+const ADMIN_CONNECTIONS: usize = 8;
+
 fn is_grpc(req: &Request) -> bool {
     req.headers()
         .get(axum::http::header::CONTENT_TYPE)
@@ -313,10 +344,24 @@ pub async fn serve_with_signals(mut config: ServerConfig, addr: SocketAddr) -> a
     );
     let listener =
         tokio::net::TcpListener::bind(addr).await.map_err(|e| anyhow::anyhow!("cannot listen on {addr}: {e}"))?;
+    let admin_listener = match config.admin.addr {
+        Some(a) => {
+            if !a.ip().is_loopback() {
+                tracing::warn!(addr = %a, "the admin address is not loopback: anyone who reaches it can reload models");
+            }
+            let l = tokio::net::TcpListener::bind(a).await.map_err(|e| anyhow::anyhow!("cannot listen on {a}: {e}"))?;
+            Some(l)
+        }
+        None => None,
+    };
     let app = tokio::task::spawn_blocking(move || App::start(&config))
         .await
         .map_err(|e| Error::Runtime(format!("start-up task failed: {e}")))??;
     let _ = set_reloader.send(Some(app.reloader().clone()));
+    let admin = admin_listener.map(|l| app.serve_admin(l));
     app.serve(listener, shutdown_signal()).await?;
+    if let Some(a) = admin {
+        let _ = a.await;
+    }
     Ok(())
 }

@@ -2,7 +2,8 @@
 //! serving directory again, or one named in the body), validates it, warms it up beside the
 //! serving runtime and then switches new requests to it at once. Requests already running finish
 //! on the runtime they started on, which is shut down when the last of them is done. A bundle
-//! that fails leaves the serving one in place; the reason is in the response and the log.
+//! that fails leaves the serving one in place; the reason is in the response and the log. Who may
+//! reload, and which bundles a request may name, is `server::admin`'s.
 
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex};
@@ -10,6 +11,7 @@ use std::time::Duration;
 
 use axum::body::Bytes;
 use axum::extract::State;
+use axum::http::HeaderMap;
 use axum::Json;
 use serde::{Deserialize, Serialize};
 use utoipa::ToSchema;
@@ -24,7 +26,8 @@ use crate::service::Predictor;
 #[derive(Debug, Default, Deserialize, ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct ReloadRequest {
-    /// Bundle directory to load; the serving one when absent.
+    /// Bundle to load: a directory in the model repository (`--model-repository`), relative to
+    /// it; the serving bundle when absent.
     #[serde(default)]
     pub model_dir: Option<String>,
 }
@@ -120,17 +123,33 @@ fn retire(old: Arc<Runtime>) {
     });
 }
 
-/// Load a bundle beside the serving one and switch to it without dropping a request.
+/// Load a bundle beside the serving one and switch to it without dropping a request. On the
+/// serving port only with `Authorization: Bearer <admin token>`; on `--admin-addr` without.
 #[utoipa::path(post, path = "/v1/models:reload", request_body(content = Option<ReloadRequest>), responses(
     (status = 200, description = "Switched to the new bundle", body = ReloadResponse),
     (status = 400, description = "Malformed JSON", body = ErrorBody),
-    (status = 422, description = "The bundle does not load; the serving one stays", body = ErrorBody),
+    (status = 403, description = "Administration is not allowed here (no or a wrong admin token)", body = ErrorBody),
+    (status = 422, description = "The bundle does not load, or is not in the model repository; the serving one stays", body = ErrorBody),
 ))]
-pub async fn reload(State(state): State<AppState>, body: Bytes) -> Result<Json<ReloadResponse>> {
+pub async fn reload(State(state): State<AppState>, headers: HeaderMap, body: Bytes) -> Result<Json<ReloadResponse>> {
+    super::admin::authorize(&headers, state.admin.token.as_deref())?;
+    reload_unguarded(&state, &body).await
+}
+
+/// The admin listener's reload: no token (the listener is the lock).
+pub async fn reload_admin(State(state): State<AppState>, body: Bytes) -> Result<Json<ReloadResponse>> {
+    reload_unguarded(&state, &body).await
+}
+
+async fn reload_unguarded(state: &AppState, body: &[u8]) -> Result<Json<ReloadResponse>> {
     let req: ReloadRequest = if body.iter().all(u8::is_ascii_whitespace) {
         ReloadRequest::default()
     } else {
-        crate::service::json::parse_json(&body)?
+        crate::service::json::parse_json(body)?
     };
-    state.reloader.reload(req.model_dir.map(PathBuf::from)).await.map(Json)
+    let dir = match req.model_dir.as_deref() {
+        Some(name) => Some(super::admin::resolve_bundle(state.admin.repository.as_deref(), name)?),
+        None => None,
+    };
+    state.reloader.reload(dir).await.map(Json)
 }

@@ -215,7 +215,21 @@ pub fn config() -> ServerConfig {
 
 /// Starts a server with `config` and waits until /readyz says ready.
 pub async fn start(config: ServerConfig) -> TestServer {
+    start_with_admin(config, false).await.0
+}
+
+/// As [`start`], and with `admin` an admin listener on a loopback port (`--admin-addr`), whose
+/// base URL comes back too.
+pub async fn start_with_admin(config: ServerConfig, admin: bool) -> (TestServer, Option<String>) {
     let app = tokio::task::spawn_blocking(move || App::start(&config)).await.unwrap().unwrap();
+    let admin_url = if admin {
+        let l = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
+        let url = format!("http://{}", l.local_addr().unwrap());
+        app.serve_admin(l);
+        Some(url)
+    } else {
+        None
+    };
     let predictor = app.predictor().clone();
     let listener = tokio::net::TcpListener::bind("127.0.0.1:0").await.unwrap();
     let addr = listener.local_addr().unwrap();
@@ -228,7 +242,7 @@ pub async fn start(config: ServerConfig) -> TestServer {
     for _ in 0..1000 {
         if let Ok(r) = client.get(server.url("/readyz")).send().await {
             if r.status() == 200 {
-                return server;
+                return (server, admin_url);
             }
         }
         tokio::time::sleep(Duration::from_millis(10)).await;

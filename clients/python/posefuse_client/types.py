@@ -409,6 +409,8 @@ class PersonPose:
             keypoints_3d=np.array([(k.x, k.y, k.z) for k in kps], dtype=np.float64).reshape(-1, 3),
             keypoints_2d=np.array([(k.u, k.v) for k in kps], dtype=np.float64).reshape(-1, 2),
             scores=np.array([k.score for k in kps], dtype=np.float64),
+            box_2d=Box2d(p.box_2d.center_x, p.box_2d.center_y, p.box_2d.width, p.box_2d.height)
+            if p.HasField("box_2d") else None,
             facing=Facing(p.facing.yaw, p.facing.confidence) if p.HasField("facing") else None,
             camera=p.camera or None,
         )

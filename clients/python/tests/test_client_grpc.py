@@ -25,10 +25,18 @@ def assert_same_poses(a, b) -> None:
         np.testing.assert_allclose(pa.keypoints_3d, pb.keypoints_3d, atol=1e-5)
         both = ~np.isnan(pa.keypoints_2d) & ~np.isnan(pb.keypoints_2d)
         np.testing.assert_allclose(pa.keypoints_2d[both], pb.keypoints_2d[both], atol=1e-3)
+        assert (pa.box_2d is None) == (pb.box_2d is None)
+        if pa.box_2d is not None:
+            np.testing.assert_allclose(
+                [pa.box_2d.center_x, pa.box_2d.center_y, pa.box_2d.width, pa.box_2d.height],
+                [pb.box_2d.center_x, pb.box_2d.center_y, pb.box_2d.width, pb.box_2d.height],
+                atol=1e-9,
+            )
         assert (pa.facing is None) == (pb.facing is None)
         if pa.facing is not None:
             assert abs(pa.facing.yaw - pb.facing.yaw) < 1e-6 and abs(pa.facing.confidence - pb.facing.confidence) < 1e-6
     assert any(p.facing is not None for p in a.persons)
+    assert any(p.box_2d is not None for p in a.persons)
     assert a.model_name == b.model_name and a.model_version == b.model_version
 
 

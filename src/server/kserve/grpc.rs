@@ -50,6 +50,54 @@ fn specs(s: &[TensorSpec]) -> Vec<proto::model_metadata_response::TensorMetadata
         .collect()
 }
 
+/// Triton's `ModelConfig` message for the served model (see `kserve::config`).
+fn model_config(name: String) -> proto::ModelConfig {
+    use super::config::{optional, triton_type};
+    proto::ModelConfig {
+        name,
+        platform: super::PLATFORM.into(),
+        backend: super::PLATFORM.into(),
+        version_policy: Some(proto::ModelVersionPolicy {
+            latest: Some(proto::model_version_policy::Latest { num_versions: 1 }),
+        }),
+        max_batch_size: 0,
+        input: INPUTS
+            .iter()
+            .map(|s| proto::ModelInput {
+                name: s.name.into(),
+                data_type: triton_type(s.datatype).1,
+                dims: s.shape.to_vec(),
+                optional: optional(s),
+            })
+            .collect(),
+        output: OUTPUTS
+            .iter()
+            .map(|s| proto::ModelOutput {
+                name: s.name.into(),
+                data_type: triton_type(s.datatype).1,
+                dims: s.shape.to_vec(),
+            })
+            .collect(),
+    }
+}
+
+/// The methods of `inference.GRPCInferenceService` this server implements; any other is
+/// answered UNIMPLEMENTED with a message (tonic's own answer has none).
+pub const METHODS: [&str; 7] =
+    ["ServerLive", "ServerReady", "ModelReady", "ServerMetadata", "ModelMetadata", "ModelInfer", "ModelConfig"];
+
+/// The status for a call to a method of the service that is not among [`METHODS`]; `None` for
+/// other paths.
+pub fn unimplemented(path: &str) -> Option<Status> {
+    let method = path.strip_prefix("/inference.GRPCInferenceService/")?;
+    (!METHODS.contains(&method)).then(|| {
+        Status::unimplemented(format!(
+            "posefuse does not offer inference.GRPCInferenceService/{method} (served: {}; docs/KSERVE.md)",
+            METHODS.join(", ")
+        ))
+    })
+}
+
 /// A tensor's elements from the typed `contents` field of its datatype.
 fn from_contents(name: &str, dt: DataType, c: proto::InferTensorContents) -> Result<TensorData> {
     Ok(match dt {
@@ -188,6 +236,16 @@ impl GrpcInferenceService for KserveService {
                 outputs: specs(&OUTPUTS),
             });
         answer("ModelMetadata", result)
+    }
+
+    async fn model_config(
+        &self,
+        request: Request<proto::ModelConfigRequest>,
+    ) -> std::result::Result<Response<proto::ModelConfigResponse>, Status> {
+        let r = request.into_inner();
+        let result = super::model(&self.state, &r.name, Some(&r.version))
+            .map(|(name, _)| proto::ModelConfigResponse { config: Some(model_config(name)) });
+        answer("ModelConfig", result)
     }
 
     async fn model_infer(

@@ -4,7 +4,9 @@
 //! (`tensors`) and call the same `Predictor::predict` as `POST /v1/poses`. docs/KSERVE.md is the
 //! contract.
 
+pub mod config;
 pub mod grpc;
+pub mod non_finite;
 pub mod rest;
 pub mod tensors;
 
@@ -28,17 +30,20 @@ pub fn server_ready(state: &AppState) -> bool {
 }
 
 /// The served model's name and version when `name` (and `version`, if given and not empty)
-/// designate it; `NotFound` otherwise.
+/// designate it; `NotFound` otherwise. The name is `--model-name` when given (an
+/// InferenceService's), else the bundle manifest's.
 pub fn model(state: &AppState, name: &str, version: Option<&str>) -> Result<(String, String)> {
-    let m = &state.predictor.bundle().manifest;
-    if name != m.name {
-        return Err(Error::NotFound(format!("model `{name}`; this server serves `{}`", m.name)));
+    let bundle = state.predictor.bundle();
+    let m = &bundle.manifest;
+    let served = state.v2_model_name.as_deref().unwrap_or(&m.name);
+    if name != served {
+        return Err(Error::NotFound(format!("model `{name}`; this server serves `{served}`")));
     }
     match version {
         Some(v) if !v.is_empty() && v != m.version => {
             Err(Error::NotFound(format!("version `{v}` of model `{name}`; this server serves `{}`", m.version)))
         }
-        _ => Ok((m.name.clone(), m.version.clone())),
+        _ => Ok((served.to_string(), m.version.clone())),
     }
 }
 

@@ -30,6 +30,8 @@ pub fn routes() -> Router<AppState> {
         .route("/v2/health/ready", get(ready))
         .route("/v2/models/{name}", get(model_metadata))
         .route("/v2/models/{name}/versions/{version}", get(model_metadata_version))
+        .route("/v2/models/{name}/config", get(model_config))
+        .route("/v2/models/{name}/versions/{version}/config", get(model_config_version))
         .route("/v2/models/{name}/ready", get(model_ready))
         .route("/v2/models/{name}/versions/{version}/ready", get(model_ready_version))
         .route("/v2/models/{name}/infer", post(infer))
@@ -100,6 +102,28 @@ async fn model_metadata_version(
     Path((name, version)): Path<(String, String)>,
 ) -> V2Result<Json<Value>> {
     metadata(&state, &name, Some(&version))
+}
+
+/// Triton's model configuration (what `tritonclient`'s `get_model_config` reads).
+async fn model_config(State(state): State<AppState>, Path(name): Path<String>) -> V2Result<Json<Value>> {
+    let (name, _) = super::model(&state, &name, None)?;
+    Ok(Json(super::config::config_json(&name)))
+}
+
+async fn model_config_version(
+    State(state): State<AppState>,
+    Path((name, version)): Path<(String, String)>,
+) -> V2Result<Json<Value>> {
+    let (name, _) = super::model(&state, &name, Some(&version))?;
+    Ok(Json(super::config::config_json(&name)))
+}
+
+/// Any other `/v2` path: 404 in the protocol's error shape (Triton's clients read `error` as text).
+pub async fn not_found(uri: axum::http::Uri) -> Response {
+    v2_response(&Error::NotFound(format!(
+        "no route for {}: posefuse serves the endpoints in docs/KSERVE.md",
+        uri.path()
+    )))
 }
 
 fn readiness(state: &AppState, name: &str, version: Option<&str>) -> V2Result<Response> {
@@ -219,7 +243,7 @@ pub fn parse_request(headers: &HeaderMap, body: &[u8], name: String, version: Op
             body.split_at(n)
         }
     };
-    let r: RequestJson = parse_json(json_part)?;
+    let r: RequestJson = parse_json(&super::non_finite::quote_non_finite(json_part))?;
     let mut inputs = Vec::with_capacity(r.inputs.len());
     for input in r.inputs {
         let name = input.name;

@@ -255,7 +255,14 @@ impl TensorData {
                 let vals: Vec<f64> = leaves
                     .iter()
                     .enumerate()
-                    .map(|(i, v)| if v.is_null() { Ok(f64::NAN) } else { v.as_f64().ok_or_else(|| bad(i, "a number")) })
+                    .map(|(i, v)| match v {
+                        serde_json::Value::Null => Ok(f64::NAN),
+                        // `NaN`, `Infinity`, `-Infinity` as Python's json writes them (`non_finite`)
+                        serde_json::Value::String(s) => {
+                            super::non_finite::value_of(s).ok_or_else(|| bad(i, "a number"))
+                        }
+                        _ => v.as_f64().ok_or_else(|| bad(i, "a number")),
+                    })
                     .collect::<Result<_>>()?;
                 if dt == DataType::F32 {
                     TensorData::F32(vals.into_iter().map(|x| x as f32).collect())
