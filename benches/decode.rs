@@ -116,6 +116,14 @@ fn main() {
             Box::new(|c, j| drop(decode_planned(j, &plan_decode(&c.windows, c.size.0, c.size.1), false).unwrap())),
         ),
         (
+            "libjpeg-turbo, each window at its own scale, no pass read to the end",
+            Box::new(|c, j| {
+                for pass in plan_passes(&c.windows, c.size.0, c.size.1) {
+                    drop(decode_planned(j, &pass.plan, false).unwrap());
+                }
+            }),
+        ),
+        (
             "libjpeg-turbo, each window at its own scale (the server's)",
             Box::new(|c, j| {
                 let crops = decode_crops(CameraImage::Jpeg(j.to_vec()), &c.windows, c.size.0, c.size.1, || Ok(()));

@@ -228,7 +228,8 @@ pub fn decode_crops(
     };
     let mut crops: Vec<Option<RgbImage>> = vec![None; windows.len()];
     let passes = plan_passes(windows, width, height);
-    let last = passes.len().saturating_sub(1);
+    // the pass reaching lowest reads on to the end: the fewest rows read only to check them
+    let last = (0..passes.len()).max_by_key(|&i| passes[i].plan.region.map_or(0, |r| r.y1)).unwrap_or(0);
     for (i, pass) in passes.iter().enumerate() {
         still_wanted()?;
         let plan = match mode_plan(&pass.plan, &bytes) {
@@ -318,7 +319,7 @@ mod tests {
         let full = decode_with_image_crate(&jpeg, image::ImageFormat::Jpeg).unwrap();
         let t = CropTransform { x0: 301.7, y0: 122.4, scale: 64.0 / 410.0, size: 64 };
         let plan = plan_decode(&[t], 960, 640);
-        assert_eq!(plan.denominator, 4);
+        assert_eq!(plan.denominator, 2);
         let reference = full.crop(&t);
         for d in [2, 4] {
             let crop = decode_planned(&jpeg, &whole_plan(d, 960, 640), false).unwrap().crop(&t);
@@ -348,7 +349,7 @@ mod tests {
 
     /// Crop windows of several sizes (so several DCT scales) spread over a 960×640 image.
     fn crowd() -> Vec<CropTransform> {
-        [(301.7, 122.4, 410.0), (20.5, 300.2, 150.0), (611.3, 97.8, 260.0), (700.0, 420.0, 90.0), (-30.0, 500.0, 140.0)]
+        [(301.7, 22.4, 610.0), (20.5, 300.2, 150.0), (611.3, 97.8, 260.0), (700.0, 420.0, 90.0), (-30.0, 500.0, 140.0)]
             .into_iter()
             .map(|(x0, y0, side)| CropTransform { x0, y0, scale: 64.0 / side, size: 64 })
             .collect()

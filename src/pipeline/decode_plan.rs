@@ -17,6 +17,13 @@ use super::CropTransform;
 /// The DCT scales a baseline JPEG decoder offers, as denominators, largest reduction first.
 pub const DCT_DENOMINATORS: [u32; 4] = [8, 4, 2, 1];
 
+/// The scales crops are cut at, largest reduction first: ¼ is left out. A frame pays one decode
+/// pass per distinct scale among its windows, and on the street frames ½ and ¼ windows are the
+/// ones that mix; without ¼ the passes per frame fall from 1.55 to 1.33 and the decode from 9.1
+/// to 6.8 ms (4:4:4), while the ¼ windows' regions cost little more at ½ (BENCHMARKS.md,
+/// "A person's crop is its own").
+pub const CROP_DENOMINATORS: [u32; 3] = [8, 2, 1];
+
 /// A rectangle of full-resolution pixels, half-open: columns `x0..x1`, rows `y0..y1`.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct PixelRect {
@@ -86,10 +93,10 @@ fn usable(t: &CropTransform, width: u32, height: u32) -> bool {
         && t.y0 + side > 0.0
 }
 
-/// The largest reduction at which window `t` keeps at least its output size `S` in decoded
-/// pixels (`side / d ≥ S`): a function of the window alone.
+/// The largest reduction of [`CROP_DENOMINATORS`] at which window `t` keeps at least its output
+/// size `S` in decoded pixels (`side / d ≥ S`): a function of the window alone.
 pub fn window_denominator(t: &CropTransform) -> u32 {
-    DCT_DENOMINATORS.into_iter().find(|&d| t.side() / d as f64 >= t.size as f64).unwrap_or(1)
+    CROP_DENOMINATORS.into_iter().find(|&d| t.side() / d as f64 >= t.size as f64).unwrap_or(1)
 }
 
 /// The plan for crop windows `windows` that share one DCT scale on a `width`×`height` image:
@@ -122,7 +129,7 @@ pub fn plan_decode(windows: &[CropTransform], width: u32, height: u32) -> Decode
 /// miss the image are in no pass (their crops are black).
 pub fn plan_passes(windows: &[CropTransform], width: u32, height: u32) -> Vec<DecodePass> {
     let mut passes = Vec::new();
-    for d in DCT_DENOMINATORS {
+    for d in CROP_DENOMINATORS {
         let members: Vec<usize> = (0..windows.len())
             .filter(|&i| usable(&windows[i], width, height) && window_denominator(&windows[i]) == d)
             .collect();
@@ -147,8 +154,10 @@ mod tests {
 
     #[test]
     fn the_smallest_window_sets_the_scale() {
-        // S = 64: a 300 px window allows 1/4 (75 ≥ 64) but not 1/8 (37.5 < 64)
-        assert_eq!(plan_decode(&[window(500.0, 500.0, 300.0, 64)], 1920, 1280).denominator, 4);
+        // S = 64: a 300 px window allows 1/4 (75 ≥ 64) but not 1/8 (37.5 < 64); crops are not cut
+        // at 1/4 (`CROP_DENOMINATORS`), so it gets 1/2
+        assert_eq!(plan_decode(&[window(500.0, 500.0, 300.0, 64)], 1920, 1280).denominator, 2);
+        assert_eq!(plan_decode(&[window(500.0, 500.0, 511.9, 64)], 1920, 1280).denominator, 2);
         assert_eq!(plan_decode(&[window(500.0, 500.0, 512.0, 64)], 1920, 1280).denominator, 8);
         assert_eq!(plan_decode(&[window(500.0, 500.0, 128.0, 64)], 1920, 1280).denominator, 2);
         assert_eq!(plan_decode(&[window(500.0, 500.0, 127.9, 64)], 1920, 1280).denominator, 1);
@@ -192,8 +201,9 @@ mod tests {
             let p = plan_decode(&[t], 1920, 1280);
             let s = scaled(&t, p.denominator);
             assert!(s.side() >= 64.0 - 1e-9 || p.denominator == 1, "box {h}: side {} at 1/{}", s.side(), p.denominator);
-            // and the next reduction would not
-            assert!(p.denominator == 8 || t.side() / ((2 * p.denominator) as f64) < 64.0, "box {h}");
+            // and the next coarser crop scale would not
+            let next = CROP_DENOMINATORS.iter().rev().find(|&&d| d > p.denominator);
+            assert!(next.is_none_or(|&d| t.side() / (d as f64) < 64.0), "box {h}");
         }
     }
 
@@ -218,9 +228,9 @@ mod tests {
 
     #[test]
     fn the_whole_image_plan_keeps_the_scale() {
-        let p = plan_decode(&[window(900.0, 600.0, 300.0, 64)], 1920, 1280);
+        let p = plan_decode(&[window(900.0, 600.0, 600.0, 64)], 1920, 1280);
         let w = p.whole_image(1920, 1280);
-        assert_eq!((w.denominator, w.region), (4, Some(PixelRect { x0: 0, y0: 0, x1: 1920, y1: 1280 })));
+        assert_eq!((w.denominator, w.region), (8, Some(PixelRect { x0: 0, y0: 0, x1: 1920, y1: 1280 })));
         let none = DecodePlan { denominator: 1, region: None };
         assert_eq!(none.whole_image(1920, 1280), none);
     }
