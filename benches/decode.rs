@@ -1,7 +1,8 @@
 //! JPEG decoders on request-size frames: the `image` crate (zune-jpeg) whole at full resolution,
-//! libjpeg-turbo whole at each DCT scale, the frame-wide plan the server ran before (one scale and
-//! region for all of a frame's crop windows, not read to the end), and the server's
-//! `decode_crops` (each window at its own scale, one pass per scale, the last read to the end). Frames: `POSEFUSE_BENCH_DATA` (a simulator output directory, e.g.
+//! libjpeg-turbo whole at each DCT scale, one plan for all of a frame's crop windows (one scale
+//! and region, not read to the end: what the server ran before, over today's crop scales), and
+//! the server's `decode_crops` (each window at its own scale, one pass per scale, the last read
+//! to the end). Frames: `POSEFUSE_BENCH_DATA` (a simulator output directory, e.g.
 //! `posefuse simulate --profile street`), each as written (4:4:4) and re-encoded 4:2:0 at the same
 //! quality; without it, one synthetic 1920×1280 frame. `cargo bench --bench decode`; results in
 //! BENCHMARKS.md.
@@ -112,7 +113,7 @@ fn main() {
         ("libjpeg-turbo 1/4, whole", whole(4)),
         ("libjpeg-turbo 1/8, whole", whole(8)),
         (
-            "libjpeg-turbo, one frame-wide scale and region (before)",
+            "libjpeg-turbo, one scale and region for all of a frame's windows",
             Box::new(|c, j| drop(decode_planned(j, &plan_decode(&c.windows, c.size.0, c.size.1), false).unwrap())),
         ),
         (
