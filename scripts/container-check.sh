@@ -3,6 +3,8 @@
 # on the published port, runs as a non-root user, serves a bundle from an overriding model dir,
 # refuses a broken one with a message, and stops cleanly on SIGTERM.
 # Usage: scripts/container-check.sh [IMAGE]   (CONTAINER=podman to use podman instead of docker)
+# CONTAINER_BUILD_FLAGS: more flags for the build, split at spaces (scripts/container-ci.sh passes
+# `--build-context`s that stand in for the base images where no registry serves them).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 C=${CONTAINER:-docker}
@@ -28,10 +30,10 @@ wait_ready() {
 
 step "build $IMAGE"
 start=$(date +%s)
-format=()
+read -r -a flags <<<"${CONTAINER_BUILD_FLAGS:-}"
 # podman writes OCI images by default, and those drop HEALTHCHECK.
-[ "$C" = podman ] && format=(--format docker)
-"$C" build "${format[@]}" -t "$IMAGE" .
+[ "$C" = podman ] && flags+=(--format docker)
+"$C" build "${flags[@]}" -t "$IMAGE" .
 echo "built in $(($(date +%s) - start)) s; size: $("$C" image inspect --format '{{.Size}}' "$IMAGE") bytes"
 
 step "simulate request frames with the image's own binary"
