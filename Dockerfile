@@ -2,6 +2,9 @@
 # The builder uses the same set-up script as CI (scripts/setup.sh) to obtain ONNX Runtime's shared
 # library from the pinned Python wheel, so the server and the trainer's checks use one version.
 # scripts/container-check.sh builds the image and checks it end to end.
+# Without a registry, scripts/container-ci.sh builds this file unchanged with podman, passing a
+# `--build-context` for debian:bookworm-slim (made from Debian's packages) and one for the builder
+# stage (an image of a binary built outside, with /usr/local/bin/posefuse and /src/.ort/lib).
 
 # The toolchain CI builds and tests with (Cargo.toml's rust-version is the oldest one supported).
 ARG RUST_VERSION=1.95
