@@ -193,18 +193,9 @@ async fn a_persons_answer_does_not_depend_on_the_crowd_or_the_cameras() {
 
 /// `posefuse predict` on a frame, with `POSEFUSE_DECODE` set as given.
 fn predict_process(frame: &Frame, decode: Option<&str>) -> PoseResponse {
-    let dir = tempfile::tempdir().unwrap();
-    let path = dir.path().join("frame.json");
-    std::fs::write(&path, serde_json::to_vec(frame).unwrap()).unwrap();
-    let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_posefuse"));
-    cmd.args(["predict", "--model-dir"]).arg(model_dir()).arg(&path);
-    match decode {
-        Some(v) => cmd.env("POSEFUSE_DECODE", v),
-        None => cmd.env_remove("POSEFUSE_DECODE"),
-    };
-    let out = cmd.output().unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    serde_json::from_slice(&out.stdout).unwrap()
+    let (ok, stdout, stderr) = predict_outcome(frame, decode);
+    assert!(ok, "{stderr}");
+    serde_json::from_str(&stdout).unwrap()
 }
 
 #[test]
@@ -219,6 +210,44 @@ fn the_planned_and_the_full_decode_give_the_same_answers() {
         for pa in &a.persons {
             let (d3, d2) = difference(pa, pose(b, &pa.id));
             assert!(d3 <= 1e-3 && d2 <= 1.0, "{}: {d3} m, {d2} px", pa.id);
+        }
+    }
+}
+
+/// `posefuse predict`'s exit status, standard output and error, with `POSEFUSE_DECODE` as given.
+fn predict_outcome(frame: &Frame, decode: Option<&str>) -> (bool, String, String) {
+    let dir = tempfile::tempdir().unwrap();
+    let path = dir.path().join("frame.json");
+    std::fs::write(&path, serde_json::to_vec(frame).unwrap()).unwrap();
+    let mut cmd = std::process::Command::new(env!("CARGO_BIN_EXE_posefuse"));
+    cmd.args(["predict", "--model-dir"]).arg(model_dir()).arg(&path);
+    match decode {
+        Some(v) => cmd.env("POSEFUSE_DECODE", v),
+        None => cmd.env_remove("POSEFUSE_DECODE"),
+    };
+    let out = cmd.output().unwrap();
+    let text = |b: &[u8]| String::from_utf8_lossy(b).into_owned();
+    (out.status.success(), text(&out.stdout), text(&out.stderr))
+}
+
+#[test]
+fn a_cut_short_or_padded_jpeg_is_refused_in_both_decode_modes() {
+    let f = frame(&[0, 1], false);
+    let jpeg = base64::engine::general_purpose::STANDARD.decode(f.image.as_ref().unwrap()).unwrap();
+    for bad in [jpeg[..jpeg.len() / 2].to_vec(), [&jpeg[..], b"trailing bytes"].concat()] {
+        let mut g = f.clone();
+        g.image = Some(base64::engine::general_purpose::STANDARD.encode(&bad));
+        g.mode = RequestedMode::Fusion;
+        for decode in [None, Some("full")] {
+            let (ok, _, err) = predict_outcome(&g, decode);
+            assert!(!ok && err.contains("end-of-image marker"), "{decode:?}: {err}");
+        }
+        // in auto mode the persons are answered LiDAR-only, saying why, in both modes
+        g.mode = RequestedMode::Auto;
+        for decode in [None, Some("full")] {
+            let r = predict_process(&g, decode);
+            assert!(r.persons.iter().all(|p| p.mode == posefuse::service::api::Mode::Lidar), "{decode:?}");
+            assert!(r.persons[0].mode_reason.contains("end-of-image marker"), "{}", r.persons[0].mode_reason);
         }
     }
 }

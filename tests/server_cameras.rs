@@ -269,3 +269,76 @@ async fn grpc_cameras_answer_as_http_and_errors_name_their_field() {
     assert!(e.message().contains("cameras[1].image"), "{}", e.message());
     s.shutdown().await.unwrap();
 }
+
+/// A Waymo-like 1920×1280 camera 1.5 m up, yawed `deg` degrees left, with strong barrel
+/// distortion (k2 = −0.33, as real Waymo cameras have): half field of view about 24.9°.
+fn barrel_calibration(deg: f64) -> CameraCalibration {
+    let (s, c) = deg.to_radians().sin_cos();
+    #[rustfmt::skip]
+    let extrinsic = vec![
+        c, -s, 0.0, 0.0,
+        s, c, 0.0, 0.0,
+        0.0, 0.0, 1.0, 1.5,
+        0.0, 0.0, 0.0, 1.0,
+    ];
+    CameraCalibration {
+        intrinsic: vec![2055.0, 2055.0, 960.0, 640.0, 0.0, -0.33, 0.0, 0.0, 0.0],
+        extrinsic,
+        width: 1920,
+        height: 1280,
+    }
+}
+
+/// A grey 1920×1280 JPEG (base64).
+fn grey_jpeg() -> String {
+    let img = image::RgbImage::from_pixel(1920, 1280, image::Rgb([110, 115, 120]));
+    base64::engine::general_purpose::STANDARD.encode(posefuse::sim::dataset::encode_jpeg(&img).unwrap())
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_box_outside_a_distorted_cameras_view_is_never_answered_with_it() {
+    let s = start(config()).await;
+    // pedestrians 10 m away at 5°, 50° and 57° left of the FRONT camera's axis
+    let at = |deg: f64| {
+        let (y, x) = deg.to_radians().sin_cos();
+        person_box(10.0 * x, 10.0 * y)
+    };
+    let boxes = [at(5.0), at(50.0), at(57.0)];
+    let pts: Vec<[f32; 3]> = boxes.iter().flat_map(|b| points_in(b, 300)).collect();
+    let persons: Vec<Person> = boxes.iter().enumerate().map(|(i, b)| person(&format!("p{i}"), *b, false)).collect();
+    let camera = |name: &str, deg: f64| FrameCamera {
+        name: name.into(),
+        image: Some(grey_jpeg()),
+        image_rgb: None,
+        calibration: barrel_calibration(deg),
+    };
+    let frame = Frame {
+        frame_id: Some("distorted".into()),
+        image: None,
+        image_rgb: None,
+        calibration: None,
+        cameras: vec![camera("FRONT", 0.0), camera("FRONT_LEFT", 45.0)],
+        points: Points::encode(&pts),
+        persons: persons.clone(),
+        mode: Default::default(),
+    };
+    // with both cameras each person is answered in the one that really sees it
+    let r = answer(&s, &frame).await;
+    let cams: Vec<Option<&str>> = r.persons.iter().map(|p| p.camera.as_deref()).collect();
+    assert_eq!(cams, vec![Some("FRONT"), Some("FRONT_LEFT"), Some("FRONT_LEFT")], "{r:?}");
+    for p in &r.persons {
+        let b = p.box_2d.unwrap();
+        assert!(b.width < 400.0 && b.height > 250.0, "{}: not a folded box: {b:?}", p.id);
+    }
+    // with FRONT alone, the two off its view get no camera: LiDAR-only, saying why
+    let front_only = Frame { cameras: vec![camera("FRONT", 0.0)], ..frame };
+    let r = answer(&s, &front_only).await;
+    let modes: Vec<Mode> = r.persons.iter().map(|p| p.mode).collect();
+    assert_eq!(modes, vec![Mode::Fusion, Mode::Lidar, Mode::Lidar], "{r:?}");
+    for p in &r.persons[1..] {
+        assert!(p.camera.is_none() && p.box_2d.is_none(), "{p:?}");
+        assert!(p.mode_reason.contains("outside the view of every camera"), "{}", p.mode_reason);
+        assert!(p.keypoints.iter().all(|k| k.uv.is_none()), "{}: keypoints folded into FRONT", p.id);
+    }
+    s.shutdown().await.unwrap();
+}
