@@ -10,7 +10,6 @@ from pathlib import Path
 
 import numpy as np
 from PIL import Image
-
 from posefuse_client import Frame
 
 ROOT = Path(__file__).resolve().parent
@@ -46,7 +45,8 @@ def frames():
     person = {"id": "a", "box_3d": BOX3D}
     yield {"calibration": CAL, "points": {"b64": b64}, "persons": [person]}
     yield {"calibration": CAL, "image": image, "points": pts.ravel().tolist(),
-           "persons": [person, {"id": "b", "box_3d": BOX3D, "box_2d": {"center_x": 30, "center_y": 20, "width": 10, "height": 30}}],
+           "persons": [person, {"id": "b", "box_3d": BOX3D,
+                                "box_2d": {"center_x": 30, "center_y": 20, "width": 10, "height": 30}}],
            "mode": "fusion"}
     yield {"cameras": [{"name": "FRONT", "calibration": CAL, "image": image},
                        {"name": "LEFT", "calibration": CAL, "image_rgb": {"width": 64, "height": 48,
@@ -73,7 +73,8 @@ def kserve_bodies():
     raw_pts = pts.tobytes()
     raw_img = struct.pack("<I", len(img)) + img
     bin_inputs = [dict(inputs[0], data=None, parameters={"binary_data_size": len(raw_pts)}), *inputs[1:],
-                  {"name": "image", "datatype": "BYTES", "shape": [1], "parameters": {"binary_data_size": len(raw_img)}}]
+                  {"name": "image", "datatype": "BYTES", "shape": [1],
+                   "parameters": {"binary_data_size": len(raw_img)}}]
     for i in bin_inputs:
         if i.get("data") is None:
             i.pop("data", None)

@@ -12,7 +12,7 @@ cargo fmt --all -- --check
 cargo clippy --all-targets --locked -- -D warnings
 
 echo "== ruff"
-.venv/bin/ruff check models-export clients/python deploy scripts examples
+.venv/bin/ruff check models-export clients/python deploy scripts examples fuzz
 
 echo "== Rust tests"
 cargo test --locked --all-targets
