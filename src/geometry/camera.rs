@@ -204,7 +204,7 @@ impl Camera {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
 
     /// A camera 1.5 m forward, 0.1 m left, 2.1 m up, yawed 5° and pitched 2°, mild distortion.

@@ -132,19 +132,9 @@ mod tests {
         assert!(s.fraction > 0.4 && s.fraction < 0.6, "{s:?}");
     }
 
-    /// A Waymo-like 1920×1280 camera at the origin, yawed `yaw`, with strong barrel distortion
-    /// (k2 = −0.33): half field of view about 24.9°.
+    /// The camera model's strongly barrel-distorted Waymo-like camera (k2 = −0.33), yawed `yaw`.
     fn barrel(yaw: f64) -> Camera {
-        let (s, c) = yaw.sin_cos();
-        #[rustfmt::skip]
-        let extrinsic = vec![
-            c, -s, 0.0, 0.0,
-            s, c, 0.0, 0.0,
-            0.0, 0.0, 1.0, 0.0,
-            0.0, 0.0, 0.0, 1.0,
-        ];
-        let intrinsic = vec![2055.0, 2055.0, 960.0, 640.0, 0.0, -0.33, 0.0, 0.0, 0.0];
-        Camera::from_calibration(&CameraCalibration { intrinsic, extrinsic, width: 1920, height: 1280 }).unwrap()
+        crate::geometry::camera::tests::barrel_camera(yaw)
     }
 
     /// A pedestrian-size box 10 m away at `deg` degrees left of +x.
