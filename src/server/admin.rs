@@ -129,6 +129,10 @@ mod tests {
         assert!(authorize(&HeaderMap::new(), Some(token)).is_err());
         assert!(authorize(&bearer("Bearer wrong"), Some(token)).is_err());
         assert!(authorize(&bearer(&format!("Bearer {token}x")), Some(token)).is_err());
+        // same length, one byte or two bytes off (a fold that forgets a difference, or lets two
+        // cancel, would admit them)
+        assert!(authorize(&bearer("Bearer 0123456789abcdef-secreT"), Some(token)).is_err());
+        assert!(authorize(&bearer("Bearer 1023456789abcdef-secret"), Some(token)).is_err());
         assert!(authorize(&bearer(token), Some(token)).is_err(), "the scheme is required");
         authorize(&bearer(&format!("Bearer {token}")), Some(token)).unwrap();
         let e = authorize(&HeaderMap::new(), Some(token)).unwrap_err();
@@ -157,6 +161,9 @@ mod tests {
         );
         assert_eq!(read_token(None, None).unwrap(), None);
         assert!(read_token(None, Some("short".into())).is_err());
+        // the bound: 16 characters are enough, 15 are not
+        assert_eq!(read_token(None, Some("0123456789abcdef".into())).unwrap().as_deref(), Some("0123456789abcdef"));
+        assert!(read_token(None, Some("0123456789abcde".into())).is_err());
         assert!(read_token(Some(&dir.path().join("missing")), None).is_err());
     }
 
