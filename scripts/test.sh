@@ -12,7 +12,7 @@ cargo fmt --all -- --check
 cargo clippy --all-targets --locked -- -D warnings
 
 echo "== ruff"
-.venv/bin/ruff check models-export clients/python deploy scripts examples fuzz
+.venv/bin/ruff check models-export clients/python deploy scripts examples fuzz tests/ros_logs
 
 echo "== Rust tests"
 cargo test --locked --all-targets
@@ -20,9 +20,10 @@ cargo test --locked --all-targets
 echo "== Python tests"
 # The trainer's tests, then the Python client's (end to end against target/debug/posefuse, built
 # above) and the deploy/ manifests' (two pytest runs: the trainer's tests import their conftest by
-# name); -rs prints the reason of any skip.
+# name); -rs prints the reason of any skip. tests/ros_logs reads the ROS 2 logs posefuse writes with
+# the official MCAP, ROS 2 and Foxglove readers.
 .venv/bin/python -m pytest -q -rs models-export
-.venv/bin/python -m pytest -q -rs clients/python deploy
+.venv/bin/python -m pytest -q -rs clients/python deploy tests/ros_logs
 
 echo "== container"
 bash scripts/container-ci.sh

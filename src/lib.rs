@@ -15,6 +15,7 @@ pub mod keypoints;
 pub mod loadbench;
 pub mod metrics;
 pub mod pipeline;
+pub mod ros;
 pub mod runtime;
 pub mod server;
 pub mod service;

@@ -34,6 +34,8 @@ enum Command {
     Bench(BenchArgs),
     /// Waymo Open Dataset v2: simulate segments in its layout, convert a dataset (docs/WAYMO.md).
     Waymo(cli::waymo::WaymoArgs),
+    /// ROS 2 drive logs (MCAP): score a log's pedestrians, write test logs (docs/ROS.md).
+    Mcap(cli::mcap::McapArgs),
 }
 
 fn main() -> anyhow::Result<()> {
@@ -45,5 +47,6 @@ fn main() -> anyhow::Result<()> {
         Command::Health(a) => commands::health(a),
         Command::Bench(a) => posefuse::loadbench::run_bench(a.into()),
         Command::Waymo(a) => cli::waymo::run(a),
+        Command::Mcap(a) => cli::mcap::run(a),
     }
 }

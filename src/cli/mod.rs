@@ -3,4 +3,5 @@
 pub mod allocator;
 pub mod args;
 pub mod commands;
+pub mod mcap;
 pub mod waymo;

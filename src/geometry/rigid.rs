@@ -4,6 +4,9 @@
 /// A row-major 4×4 transform.
 pub type Mat4 = [[f64; 4]; 4];
 
+/// The transform that changes nothing.
+pub const IDENTITY: Mat4 = [[1.0, 0.0, 0.0, 0.0], [0.0, 1.0, 0.0, 0.0], [0.0, 0.0, 1.0, 0.0], [0.0, 0.0, 0.0, 1.0]];
+
 /// A transform from its 16 row-major values.
 pub fn mat4(v: &[f64; 16]) -> Mat4 {
     std::array::from_fn(|r| std::array::from_fn(|c| v[r * 4 + c]))

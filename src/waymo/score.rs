@@ -36,7 +36,7 @@ pub enum Scorer<'a> {
 }
 
 impl Scorer<'_> {
-    async fn answer(&self, frame: Frame, timeout: Duration) -> anyhow::Result<PoseResponse> {
+    pub async fn answer(&self, frame: Frame, timeout: Duration) -> anyhow::Result<PoseResponse> {
         match self {
             Scorer::InProcess(p) => Ok(p.answer(frame, None, timeout).await?),
             Scorer::Server(addr) => tokio::time::timeout(timeout, post_poses(addr, &frame))
