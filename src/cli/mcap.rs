@@ -17,7 +17,7 @@ pub struct McapArgs {
 pub enum McapCommand {
     /// Predict every pedestrian of every frame of a ROS 2 log; write the poses as a new log
     /// (Foxglove scene updates and image annotations, and the full responses as JSON).
-    Score(McapScoreArgs),
+    Score(Box<McapScoreArgs>),
     /// Write a Waymo v2 dataset root (e.g. from `posefuse waymo simulate`) as a ROS 2 log.
     Record(McapRecordArgs),
 }
@@ -90,6 +90,7 @@ pub fn run(a: McapArgs) -> anyhow::Result<()> {
             Ok(())
         }
         McapCommand::Score(a) => {
+            let a = *a;
             let o = McapScoreOptions {
                 input: a.input,
                 out: a.out,

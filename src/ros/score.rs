@@ -212,7 +212,7 @@ impl<'a> Router<'a> {
 
 /// A frame ready to answer, or one that is not.
 enum Job {
-    Frame { stamp_ns: i64, base: String, built: Built },
+    Frame { stamp_ns: i64, base: String, built: Box<Built> },
     Skipped { stamp_ns: i64, base: String, reason: String },
 }
 
@@ -260,7 +260,7 @@ fn read_log(
         let stamp_ns = a.boxes.header.stamp_ns;
         let base = a.boxes.header.frame_id.clone();
         let job = match build_frame(&a, tf, infos, &build) {
-            Ok(built) => Job::Frame { stamp_ns, base, built },
+            Ok(built) => Job::Frame { stamp_ns, base, built: Box::new(built) },
             Err(skip) => Job::Skipped { stamp_ns, base, reason: skip.0 },
         };
         // a closed channel means the answering side has stopped: nothing waits for more
@@ -397,7 +397,7 @@ pub async fn score(scorer: &Scorer<'_>, o: &McapScoreOptions) -> anyhow::Result<
         .map(|job| async move {
             match job {
                 Job::Frame { stamp_ns, base, built } => {
-                    let Built { frame, images, left_out } = built;
+                    let Built { frame, images, left_out } = *built;
                     let answer = scorer.answer(frame, o.timeout).await;
                     (stamp_ns, base, Ok((images, left_out, answer)))
                 }

@@ -276,3 +276,24 @@ def test_a_truncated_log_scores_what_it_holds_and_says_where_it_ends(drive, tmp_
     # what was scored is a complete, readable log
     with open(tmp_path / "out.mcap", "rb") as f:
         assert sum(1 for _ in make_reader(f).iter_messages(topics=["/posefuse/poses"])) == summary["frames_answered"]
+
+
+def test_the_preview_draws_the_annotations_over_their_images(drive, scored, tmp_path):
+    import subprocess
+    import sys
+
+    from conftest import ROOT
+    from PIL import Image
+
+    out, _ = scored
+    png = tmp_path / "preview.png"
+    script = ROOT / "scripts/mcap_preview.py"
+    args = ["--drive", str(drive), "--poses", str(out), "--out", str(png), "--frames", "2", "--height", "100"]
+    p = subprocess.run([sys.executable, str(script), *args], capture_output=True, text=True, timeout=300)
+    assert p.returncode == 0, p.stderr
+    assert "2 images" in p.stdout
+    sheet = np.asarray(Image.open(png).convert("RGB")).astype(int)
+    assert sheet.shape[0] == 100
+    # the bones' colour (0.1, 0.9, 0.4 in src/ros/viz.rs) is drawn
+    bone = np.array([26, 230, 102])
+    assert (np.abs(sheet - bone).max(axis=2) <= 12).sum() > 20
