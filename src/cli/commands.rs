@@ -53,6 +53,45 @@ pub fn cli_predictor(a: &RuntimeArgs) -> anyhow::Result<Predictor> {
     })
 }
 
+/// Where the scoring commands (`waymo score`, `mcap score`) get their answers.
+#[derive(Debug, clap::Args)]
+pub struct ScoringArgs {
+    /// Frames predicted concurrently.
+    #[arg(long, default_value_t = 4)]
+    pub concurrency: usize,
+    /// Send the requests to this running server (http://host:port) instead of loading the
+    /// model in this process.
+    #[arg(long)]
+    pub server: Option<String>,
+    #[command(flatten)]
+    pub runtime: RuntimeArgs,
+}
+
+/// A running server's address, or the bundle loaded here.
+pub enum Answerer {
+    Server(String),
+    InProcess(Box<Predictor>),
+}
+
+impl ScoringArgs {
+    /// Connects nothing yet; loads and warms the bundle when there is no `--server`.
+    pub fn answerer(&self) -> anyhow::Result<Answerer> {
+        Ok(match &self.server {
+            Some(url) => Answerer::Server(posefuse::waymo::score::server_addr(url)?),
+            None => Answerer::InProcess(Box::new(cli_predictor(&self.runtime)?)),
+        })
+    }
+}
+
+impl Answerer {
+    pub fn scorer(&self) -> posefuse::waymo::score::Scorer<'_> {
+        match self {
+            Answerer::Server(addr) => posefuse::waymo::score::Scorer::Server(addr.clone()),
+            Answerer::InProcess(p) => posefuse::waymo::score::Scorer::InProcess(p),
+        }
+    }
+}
+
 /// A deadline no CLI frame should reach; the server's is a flag.
 pub const CLI_FRAME_TIMEOUT: Duration = Duration::from_secs(600);
 

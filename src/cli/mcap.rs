@@ -4,7 +4,6 @@ use std::path::PathBuf;
 
 use posefuse::ros::record::{record, RecordOptions};
 use posefuse::ros::score::{score, McapScoreOptions};
-use posefuse::waymo::score::{server_addr, Scorer};
 
 /// Arguments of `posefuse mcap`.
 #[derive(Debug, clap::Args)]
@@ -55,15 +54,8 @@ pub struct McapScoreArgs {
     /// Detection classes that are pedestrians (class_id of any hypothesis, any case).
     #[arg(long = "pedestrian-class", value_delimiter = ',', default_value = "pedestrian,person,2")]
     pub pedestrian_classes: Vec<String>,
-    /// Frames answered concurrently.
-    #[arg(long, default_value_t = 4)]
-    pub concurrency: usize,
-    /// Send the requests to this running server (http://host:port) instead of loading the
-    /// model in this process.
-    #[arg(long)]
-    pub server: Option<String>,
     #[command(flatten)]
-    pub runtime: super::args::RuntimeArgs,
+    pub scoring: super::commands::ScoringArgs,
 }
 
 /// Arguments of `posefuse mcap record`.
@@ -101,17 +93,11 @@ pub fn run(a: McapArgs) -> anyhow::Result<()> {
                 tf_topic: a.tf_topic,
                 sync_ms: a.sync_ms,
                 pedestrian_classes: a.pedestrian_classes,
-                concurrency: a.concurrency,
+                concurrency: a.scoring.concurrency,
                 timeout: super::commands::CLI_FRAME_TIMEOUT,
             };
-            let rt = super::commands::tokio_runtime()?;
-            let sum = match &a.server {
-                Some(url) => rt.block_on(score(&Scorer::Server(server_addr(url)?), &o))?,
-                None => {
-                    let predictor = super::commands::cli_predictor(&a.runtime)?;
-                    rt.block_on(score(&Scorer::InProcess(&predictor), &o))?
-                }
-            };
+            let answerer = a.scoring.answerer()?;
+            let sum = super::commands::tokio_runtime()?.block_on(score(&answerer.scorer(), &o))?;
             println!("{}", serde_json::to_string_pretty(&sum)?);
             match sum.log_error {
                 Some(e) => anyhow::bail!("{e}"),

@@ -6,7 +6,7 @@ use posefuse::pipeline::PointFrame;
 use posefuse::sim::street::Profile;
 use posefuse::waymo::convert::{convert, ConvertOptions};
 use posefuse::waymo::schema::{name_value, CAMERA_NAMES};
-use posefuse::waymo::score::{score, server_addr, Scorer};
+use posefuse::waymo::score::score;
 use posefuse::waymo::sim::WaymoSimOptions;
 
 /// Arguments of `posefuse waymo`.
@@ -42,15 +42,8 @@ pub struct WaymoScoreArgs {
     /// dataset; a Kubernetes Indexed Job passes its index as i).
     #[arg(long, default_value = "0/1", value_parser = parse_shard)]
     pub shard: (usize, usize),
-    /// Frame requests predicted concurrently.
-    #[arg(long, default_value_t = 4)]
-    pub concurrency: usize,
-    /// Send the requests to this running server (http://host:port) instead of loading the
-    /// model in this process.
-    #[arg(long)]
-    pub server: Option<String>,
     #[command(flatten)]
-    pub runtime: super::args::RuntimeArgs,
+    pub scoring: super::commands::ScoringArgs,
 }
 
 /// Arguments of `posefuse waymo eval`.
@@ -217,19 +210,11 @@ pub fn run(a: WaymoArgs) -> anyhow::Result<()> {
                 dataset: a.dataset,
                 out: a.out,
                 shard: a.shard,
-                concurrency: a.concurrency,
+                concurrency: a.scoring.concurrency,
                 timeout: super::commands::CLI_FRAME_TIMEOUT,
             };
-            let sum = match &a.server {
-                Some(url) => {
-                    let scorer = Scorer::Server(server_addr(url)?);
-                    super::commands::tokio_runtime()?.block_on(score(&scorer, &o))?
-                }
-                None => {
-                    let predictor = super::commands::cli_predictor(&a.runtime)?;
-                    super::commands::tokio_runtime()?.block_on(score(&Scorer::InProcess(&predictor), &o))?
-                }
-            };
+            let answerer = a.scoring.answerer()?;
+            let sum = super::commands::tokio_runtime()?.block_on(score(&answerer.scorer(), &o))?;
             eprintln!(
                 "scored {} segment(s) ({} already done), {} frames, {} persons, {} failed requests in {:.1} s ({:.1} frames/s)",
                 sum.segments_scored,
