@@ -118,7 +118,7 @@ pub fn raw_rgb(encoding: &str, width: u32, height: u32, step: u32, data: &[u8]) 
         other => return Err(format!("image encoding `{other}` (rgb8, bgr8, rgba8, bgra8 and mono8 are read)")),
     };
     let (w, h, step) = (width as usize, height as usize, step as usize);
-    if step < w * channels || h.saturating_mul(step) > data.len() {
+    if w == 0 || h == 0 || step < w * channels || h.saturating_mul(step) > data.len() {
         return Err(format!("a {width}×{height} {encoding} image with step {step} in {} bytes", data.len()));
     }
     let mut pixels = Vec::with_capacity(w * h * 3);
@@ -337,6 +337,7 @@ mod tests {
         };
         assert_eq!(pixels, vec![7, 7, 7, 8, 8, 8, 9, 9, 9, 10, 10, 10]);
         assert!(raw_rgb("rgb8", 2, 2, 6, &[0; 11]).is_err());
+        assert!(raw_rgb("rgb8", 0, 2, 0, &[]).is_err());
         assert!(raw_rgb("yuv422", 2, 2, 4, &[0; 8]).unwrap_err().contains("yuv422"));
     }
 }
