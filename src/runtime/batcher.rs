@@ -295,7 +295,7 @@ fn worker_loop(models: &mut Models, rx: &Receiver<Job>, gate: &Gate, max_batch: 
 }
 
 /// One round: the camera batch (camera jobs and chains) first, then chains' point inputs, then
-/// one batch per point network.
+/// one batch per point network; between the stages, jobs whose callers gave up are dropped.
 fn run_round(models: &mut Models, jobs: Vec<Job>) {
     let started = Instant::now();
     let item = |reply, enqueued: Instant, kind: ModelKind| {
@@ -323,6 +323,8 @@ fn run_round(models: &mut Models, jobs: Vec<Job>) {
         for ((mut it, _, chain), out) in camera.into_iter().zip(outputs) {
             it.inference += took;
             match (out, chain) {
+                // its caller gave up while the camera ran: no smoothing, no point network
+                (Ok(_), Some(_)) if it.job_reply.is_closed() => {}
                 (Ok(h), Some((kind, then))) => {
                     let t = Instant::now();
                     let next = then(&h);
@@ -340,7 +342,8 @@ fn run_round(models: &mut Models, jobs: Vec<Job>) {
             }
         }
     }
-    for (kind, group) in ModelKind::ALL.into_iter().zip(points) {
+    for (kind, mut group) in ModelKind::ALL.into_iter().zip(points) {
+        group.retain(|(it, _)| !it.job_reply.is_closed());
         if group.is_empty() {
             continue;
         }
