@@ -220,6 +220,19 @@ mod tests {
     }
 
     #[test]
+    fn the_nearest_is_taken_even_when_an_earlier_one_is_in_the_window() {
+        let mut s = Assembler::new(50.0);
+        s.push_image(image("/front", 1_000 - 40));
+        s.push_image(image("/front", 1_000 + 5));
+        s.push_cloud("/top", cloud(1_000 - 30));
+        s.push_cloud("/top", cloud(1_000 + 2));
+        s.push_boxes(boxes(1_000));
+        let out = s.ready(true);
+        assert_eq!(stamps(&out[0]), (1_000, Some(1_002), vec![("/front".into(), 1_005)]));
+        assert_eq!(out[0].cloud.as_ref().map(|(t, _)| t.as_str()), Some("/top"));
+    }
+
+    #[test]
     fn messages_outside_the_window_are_not_taken() {
         let mut s = Assembler::new(20.0);
         s.push_cloud("/lidar", cloud(0));
@@ -283,6 +296,8 @@ mod tests {
             answered += s.ready(false).len();
         }
         assert!(s.held() <= 2 * MAX_BUFFERED, "{}", s.held());
-        assert_eq!(answered + s.ready(true).len(), 1000);
+        let waiting = s.ready(true).len();
+        assert_eq!(waiting, MAX_BUFFERED);
+        assert_eq!(answered + waiting, 1000);
     }
 }
