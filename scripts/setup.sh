@@ -17,7 +17,8 @@ if [ ! -x "$VENV/bin/python" ]; then
   "$PY" -m venv "$VENV"
 fi
 "$VENV/bin/python" -m pip install -q --upgrade pip
-# The pin lives in requirements.txt only, so the server and the trainer's checks use one version.
+# The pin lives in requirements.txt (and its lock) only, so the server and the trainer's checks use
+# one version.
 "$VENV/bin/python" -m pip install -q "$(grep -E '^onnxruntime==' models-export/requirements.txt)"
 
 capi=$("$VENV/bin/python" -c 'import onnxruntime, os; print(os.path.join(os.path.dirname(onnxruntime.__file__), "capi"))')
@@ -29,7 +30,9 @@ if [ "$runtime_only" = 1 ]; then
   exit 0
 fi
 
-"$VENV/bin/python" -m pip install -q -r models-export/requirements.txt
+# The exact versions (requirements.lock, resolved from requirements.txt by scripts/lock.sh): the
+# same command gives the same weights on another machine of the same kind.
+"$VENV/bin/python" -m pip install -q -r models-export/requirements.lock
 "$VENV/bin/python" -m pip install -q --no-deps -e models-export
 "$VENV/bin/python" -m pip install -q --no-deps -e clients/python
 echo "set-up done: $VENV (python, the trainer, the Python client), .ort/lib/libonnxruntime.so"
