@@ -262,6 +262,7 @@ def main(argv=None):
             rotate_deg=a.rotate_deg,
             seed=a.seed,
             seg_weight=a.seg_weight,
+            depth_correction=depth,
             time_budget_s=row_budget * (1.0 if first else 1.3),
         )
         net_cfg = PointNetConfig(in_features=3 + K if fusion else 3)

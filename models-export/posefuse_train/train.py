@@ -11,27 +11,136 @@ SGD with Nesterov momentum, warm-up and cosine decay.
 A run's length is a number of steps fixed by the configuration (epochs, or steps), so the same
 command and seed give the same weights. A wall-clock budget (`time_budget_s`) is opt-in: it
 shortens the run (and compresses the schedule) to what fits, which depends on the machine.
+
+Data comes as a dict of arrays (small sets, tests) or as a `shards.ShardSet` read a window of
+shards at a time; either way batches are drawn by `shards.IndexSampler` and gathered by
+`shards.ShardLoader`. How a stage runs (device, bf16, processes, checkpoints, resume) is its
+`RunOptions`; what it learns is its config.
 """
 
 from __future__ import annotations
 
+import contextlib
 import dataclasses
 import math
+import os
 import time
-from dataclasses import dataclass
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
 import torch.nn.functional as F
 from tqdm import tqdm
 
+from . import distributed
 from .camera_net import CameraNet
 from .config import CameraNetConfig, PipelineConfig, PointNetConfig
-from .fusion import sample_features
+from .fusion import sample_features, smooth_heatmaps
 from .keypoints import FLIP, K
-from .labels import segmentation_labels
+from .labels import pseudo_labels, segmentation_labels
 from .losses import heatmap_loss, heatmap_targets, regression_loss, segmentation_loss
 from .point_net import PointNet
+from .shards import IndexSampler, ShardLoader, ShardSet, window_shards
+
+# --- how a stage runs ---------------------------------------------------------------------------
+
+
+@dataclass
+class RunOptions:
+    """How a training stage runs, not what it learns."""
+
+    device: str = "cpu"
+    amp: bool = False  # bf16 autocast of the forward pass (CUDA; allowed on the CPU for tests)
+    channels_last: bool = False  # the camera net's memory format (pays on CUDA convolutions)
+    memory_mb: float = 0.0  # shard memory budget; 0: the whole set in memory
+    checkpoint: Path | None = None  # the stage's resumable checkpoint
+    checkpoint_every: int = 0  # steps between checkpoints (0: only at the end)
+    resume: bool = False  # continue from `checkpoint` when it exists
+    stop_at_step: int = 0  # > 0: stop once this step is done (checkpoint written), resume later
+    record: Callable[[dict], None] | None = None  # JSONL records (losses every `record_every`)
+    record_every: int = 50
+    dist: distributed.Dist = field(default_factory=distributed.Dist)
+
+
+class Stopped(Exception):
+    """A stage stopped at `stop_at_step` before its end; its checkpoint holds the run."""
+
+
+def _autocast(opts: RunOptions):
+    if not opts.amp:
+        return contextlib.nullcontext()
+    return torch.autocast(device_type=torch.device(opts.device).type, dtype=torch.bfloat16)
+
+
+def _save_atomic(obj, path: Path) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    tmp = path.with_name(path.name + ".partial")
+    torch.save(obj, tmp)
+    os.replace(tmp, path)
+
+
+class Source:
+    """A data set as the training stages read it: a ShardSet, or a dict of arrays seen as one
+    shard (everything in memory)."""
+
+    def __init__(self, data):
+        if isinstance(data, ShardSet):
+            self.shards = data
+        else:
+            self.shards = _MemoryShards(data)
+
+    def __len__(self) -> int:
+        return len(self.shards)
+
+    def window(self, keys, opts: RunOptions) -> int:
+        if opts.memory_mb <= 0:
+            return self.shards.num_shards
+        return window_shards(self.shards, keys, opts.memory_mb)
+
+    def column(self, key: str) -> np.ndarray:
+        """One small array over the whole set (labels, counts, boxes)."""
+        return self.shards.read_all([key])[key]
+
+
+class _MemoryShards:
+    """A dict of arrays with ShardSet's reading interface: one shard holding every sample."""
+
+    def __init__(self, data: dict):
+        self.data = data
+        m = len(data["kp2d"])
+        self.counts = np.asarray([m], np.int64)
+        self.offsets = np.asarray([0, m], np.int64)
+        self.num_shards = 1
+
+    def __len__(self) -> int:
+        return int(self.offsets[-1])
+
+    def shard_of(self, index):
+        return np.zeros(len(index), np.int64)
+
+    def shard_bytes(self, keys) -> int:
+        return sum(self.data[k].nbytes for k in keys)
+
+    def read(self, shard: int, keys) -> dict:
+        return {k: self.data[k] for k in keys}
+
+    def read_all(self, keys) -> dict:
+        return {k: self.data[k] for k in keys}
+
+
+def stream_labels(data, cfg: PipelineConfig, t_r: float, depth_correction: bool) -> dict:
+    """Pseudo labels of every sample of a dict or ShardSet (small: [M,K] and [M,K,3]), computed one
+    shard at a time."""
+    source = data if isinstance(data, Source) else Source(data)
+    keys = ("kp2d", "kp2d_visible", "points_xyz", "points_uv", "points_count", "box3d", "sensor_xyz")
+    parts = [
+        pseudo_labels(source.shards.read(i, keys), cfg, t_r, depth_correction)
+        for i in range(source.shards.num_shards)
+    ]
+    return {k: np.concatenate([p[k] for p in parts], axis=0) for k in ("kp3d", "weight", "visible")}
+
 
 # --- the loop ----------------------------------------------------------------------------------
 
@@ -69,28 +178,49 @@ def fit(
     min_steps: int = 1,
     desc: str = "train",
     clock=time.monotonic,
+    start_step: int = 0,
+    history: list[float] | None = None,
+    after_step: Callable[[int, list[float], float], bool] | None = None,
+    batch_size: int = 1,
+    autocast=contextlib.nullcontext,
+    mean=float,
 ) -> list[float]:
     """The training loop of both networks: `steps` optimizer steps on `batch_loss(step)` (a scalar
     tensor), the learning rate of each step from `lr_at(step, total_steps)`. With `time_budget_s`
-    > 0 the run stops early when the budget runs out (see StepBudget). Returns the loss per step
-    and leaves the network in eval mode."""
+    > 0 the run stops early when the budget runs out (see StepBudget). A resumed run starts at
+    `start_step` with the loss `history` so far. `after_step(steps_done, history, lr)` runs after
+    every step (checkpoints, logs) and stops the run by returning True. `mean` turns a loss into
+    the number logged (the mean over processes under DDP). The bar counts samples (samples/s,
+    ETA). Returns the loss per step and leaves the network in eval mode."""
     budget = StepBudget(steps, time_budget_s, min_steps, clock)
     net.train()
-    step, ema, history = 0, None, []
-    bar = tqdm(total=budget.total, desc=desc, unit="it", mininterval=5.0)
+    step, history = start_step, list(history or [])
+    ema = None
+    bar = tqdm(
+        total=budget.total * batch_size,
+        initial=step * batch_size,
+        desc=desc,
+        unit="sample",
+        unit_scale=True,
+        mininterval=5.0,
+    )
     while step < budget.total:
+        lr = lr_at(step, budget.total)
         for g in opt.param_groups:
-            g["lr"] = lr_at(step, budget.total)
-        loss = batch_loss(step)
+            g["lr"] = lr
+        with autocast():
+            loss = batch_loss(step)
         opt.zero_grad(set_to_none=True)
         loss.backward()
         opt.step()
         step += 1
-        bar.total = budget.update(step)
-        history.append(loss.item())
+        bar.total = budget.update(step) * batch_size
+        history.append(mean(loss))
         ema = history[-1] if ema is None else 0.98 * ema + 0.02 * history[-1]
-        bar.update(1)
+        bar.update(batch_size)
         bar.set_postfix(loss=f"{ema:.3e}", refresh=False)
+        if after_step is not None and after_step(step, history, lr):
+            break
     bar.close()
     net.eval()
     return history
@@ -130,6 +260,7 @@ class TrainCameraConfig:
     scale_range: float = 0.25
     flip_prob: float = 0.5
     sigma_cells: float = 1.0  # target Gaussian sigma in heatmap cells (2 at 64x64 in the paper)
+    steps: int = 0  # > 0: exactly this many steps (overrides epochs)
     time_budget_s: float = 0.0  # opt-in: > 0 stops (with the schedule compressed) when this runs out
     seed: int = 0
 
@@ -172,52 +303,170 @@ def augment(x, kp, vis, cfg: TrainCameraConfig, gen: torch.Generator):
     return x, kp, vis
 
 
+class Stage:
+    """Checkpoints and resumption of one network's training: the network, its optimizer, the
+    sampler, the augmentation generator, the step and the loss history. A resumed stage continues
+    to the same weights as an uninterrupted one (same device and process count)."""
+
+    def __init__(self, name: str, net, opt, sampler: IndexSampler, gen: torch.Generator, opts: RunOptions):
+        self.name, self.net, self.opt, self.sampler, self.gen, self.opts = name, net, opt, sampler, gen, opts
+        self.steps = 0
+        self.stopped = False
+        self.batch_size = 1
+        self._mark = (time.monotonic(), 0)  # (time, step) of the last record
+
+    def restore(self) -> tuple[int, list[float]]:
+        path = self.opts.checkpoint
+        if not (self.opts.resume and path is not None and Path(path).exists()):
+            return 0, []
+        state = torch.load(path, map_location="cpu", weights_only=False)
+        if state.get("stage") != self.name:
+            raise ValueError(f"{path}: a checkpoint of stage {state.get('stage')!r}, not {self.name!r}")
+        self.net.load_state_dict(state["net"])
+        self.opt.load_state_dict(state["opt"])
+        self.sampler.load_state_dict(state["sampler"])
+        self.gen.set_state(state["gen"])
+        return int(state["step"]), list(state["history"])
+
+    def save(self, step: int, history: list[float]) -> None:
+        if self.opts.checkpoint is None or not self.opts.dist.main:
+            return
+        state = {
+            "stage": self.name,
+            "step": step,
+            "history": history,
+            "net": {k: v.detach().cpu() for k, v in self.net.state_dict().items()},
+            "opt": self.opt.state_dict(),
+            "sampler": self.sampler.state_dict(),
+            "gen": self.gen.get_state(),
+        }
+        _save_atomic(state, Path(self.opts.checkpoint))
+
+    def after_step(self, step: int, history: list[float], lr: float) -> bool:
+        o = self.opts
+        every = max(1, o.record_every)
+        if o.record is not None and o.dist.main and (step % every == 0 or step == self.steps):
+            window = history[-every:]
+            now, (then, at) = time.monotonic(), self._mark
+            self._mark = (now, step)
+            rec = {
+                "stage": self.name,
+                "step": step,
+                "loss": float(np.mean(window)),
+                "last": history[-1],
+                "lr": lr,
+            }
+            rec["samples_per_s"] = round((step - at) * self.batch_size / max(now - then, 1e-9), 1)
+            if torch.device(o.device).type == "cuda":
+                rec["cuda_max_memory_gb"] = round(torch.cuda.max_memory_allocated() / 2**30, 3)
+            o.record(rec)
+        stop = 0 < o.stop_at_step <= step < self.steps
+        if step == self.steps or stop or (o.checkpoint_every > 0 and step % o.checkpoint_every == 0):
+            self.save(step, history)
+        self.stopped = stop
+        return stop
+
+    def run(self, batch_loss, lr_at, steps: int, *, time_budget_s: float, min_steps: int, batch_size: int):
+        if time_budget_s > 0 and (self.opts.resume or self.opts.stop_at_step):
+            raise ValueError("a wall-clock budget cannot be resumed: give a number of steps")
+        self.steps, self.batch_size = steps, batch_size
+        start, history = self.restore()
+        self._mark = (time.monotonic(), start)
+        history = fit(
+            self.net,
+            self.opt,
+            batch_loss,
+            lr_at,
+            steps,
+            time_budget_s=time_budget_s,
+            min_steps=min_steps,
+            desc=self.name,
+            start_step=start,
+            history=history,
+            after_step=self.after_step,
+            batch_size=batch_size,
+            autocast=lambda: _autocast(self.opts),
+            mean=self.opts.dist.mean,
+        )
+        if self.stopped:
+            raise Stopped(f"{self.name}: stopped after step {len(history)} of {steps}")
+        return history
+
+
 def train_camera(
-    data: dict,
+    data,
     pipeline: PipelineConfig,
     net_cfg: CameraNetConfig,
     cfg: TrainCameraConfig,
     device: str = "cpu",
     log=print,
+    opts: RunOptions | None = None,
 ) -> CameraNet:
+    """The camera net from 2D labels. `data`: a dict of arrays or a ShardSet."""
+    opts = opts or RunOptions(device=device)
+    device, d = opts.device, opts.dist
     gen, rng = seed_everything(cfg.seed)
     net = CameraNet(net_cfg).to(device)
+    if opts.channels_last:
+        net = net.to(memory_format=torch.channels_last)
     opt = torch.optim.Adam(net.parameters(), lr=cfg.lr, weight_decay=cfg.weight_decay)
-    m = len(data["image"])
-    steps = int(round(cfg.epochs * max(1, m // cfg.batch_size)))
-    order = batches(rng, np.arange(m), cfg.batch_size)
+    source = Source(data)
+    m = len(source)
+    steps = cfg.steps if cfg.steps > 0 else int(round(cfg.epochs * max(1, m // cfg.batch_size)))
+    keys = ("image", "kp2d", "kp2d_visible")
+    window = source.window(keys, opts)
+    sampler = IndexSampler(source.shards, np.ones(m, bool), cfg.batch_size, window, rng)
+    loader = ShardLoader(source.shards, keys, 2 * window)
+    model = distributed.wrap(net, d, device)
+    stage = Stage("camera", net, opt, sampler, gen, opts)
 
     def lr_at(step, total):
         return cfg.lr * 0.1 ** sum(step / total >= f for f in cfg.decay_at)
 
     def batch_loss(_step):
-        idx = np.sort(next(order))
-        x = to_input(data["image"][idx], device)
-        kp = torch.from_numpy(data["kp2d"][idx]).to(device)
-        vis = torch.from_numpy(data["kp2d_visible"][idx].astype(np.float32)).to(device)
+        idx = np.sort(sampler.next())
+        loader.prefetch(sampler.upcoming_shards())
+        b = loader.gather(idx)
+        x = to_input(b["image"], device)
+        kp = torch.from_numpy(b["kp2d"]).to(device)
+        vis = torch.from_numpy(b["kp2d_visible"].astype(np.float32)).to(device)
+        # the whole global batch is augmented by every process (one random stream), each trains on its slice
         x, kp, vis = augment(x, kp, vis, cfg, gen)
+        mine = d.slice(len(idx))
+        x, kp, vis = x[mine], kp[mine], vis[mine]
         target, weight = heatmap_targets(kp, vis, pipeline.image_size, pipeline.heatmap_size, cfg.sigma_cells)
-        return heatmap_loss(net(normalize(x, pipeline)), target, weight)
+        x = normalize(x, pipeline)
+        if opts.channels_last:
+            x = x.contiguous(memory_format=torch.channels_last)
+        return heatmap_loss(model(x).float(), target, weight)
 
     t0 = time.time()
-    history = fit(
-        net, opt, batch_loss, lr_at, steps, time_budget_s=cfg.time_budget_s, min_steps=10, desc="camera"
-    )
+    try:
+        history = stage.run(
+            batch_loss, lr_at, steps, time_budget_s=cfg.time_budget_s, min_steps=10, batch_size=cfg.batch_size
+        )
+    finally:
+        loader.close()
     net.loss_history = history
     net.trained_epochs = len(history) * cfg.batch_size / m
     log(
         f"camera: {len(history)} steps ({net.trained_epochs:.1f} epochs) in {time.time() - t0:.0f}s, "
         f"final loss {np.mean(history[-50:]):.3e}"
     )
-    return net
+    return net.to(memory_format=torch.contiguous_format)
 
 
 @torch.no_grad()
-def predict_heatmaps(net: CameraNet, images: np.ndarray, pipeline: PipelineConfig, device="cpu", batch=256):
+def predict_heatmaps(
+    net: CameraNet, images: np.ndarray, pipeline: PipelineConfig, device="cpu", batch=256, progress=True
+):
     """Raw (unsmoothed) heatmaps [M,K,H',W'] for uint8 crops [M,S,S,3]."""
     net.eval()
     out = []
-    for a in tqdm(range(0, len(images), batch), desc="heatmaps", unit="batch", mininterval=5.0, leave=False):
+    chunks = range(0, len(images), batch)
+    if progress:
+        chunks = tqdm(chunks, desc="heatmaps", unit="batch", mininterval=5.0, leave=False)
+    for a in chunks:
         x = normalize(to_input(images[a : a + batch], device), pipeline)
         out.append(net(x).float().cpu().numpy())
     return np.concatenate(out, axis=0) if out else np.zeros((0,), np.float32)
@@ -246,6 +495,7 @@ class TrainPointConfig:
     rotate_deg: float = 20.0
     time_budget_s: float = 0.0  # opt-in: > 0 stops (with the schedule compressed) when this runs out
     seed: int = 0
+    depth_correction: bool = False  # pseudo labels pushed along the rays (labels.depth_offsets)
 
 
 def select_points(counts: torch.Tensor, n: int, p: int, gen: torch.Generator) -> torch.Tensor:
@@ -275,36 +525,60 @@ def point_batch(xyz, uv, smoothed, image_size: int):
     return torch.cat([xyz, sample_features(smoothed, uv, image_size)], dim=2)
 
 
+def shard_heatmaps(camera: CameraNet, pipeline: PipelineConfig, device: str):
+    """A ShardLoader transform: a shard's images -> the camera net's smoothed heatmaps (what the
+    fusion net samples), computed once per shard load; the images are dropped."""
+
+    def transform(_shard: int, arrays: dict) -> dict:
+        raw = predict_heatmaps(camera, arrays.pop("image"), pipeline, device, progress=False)
+        t = torch.from_numpy(raw)
+        arrays["smoothed"] = smooth_heatmaps(t, pipeline.smoothing_kernel, pipeline.smoothing_sigma).numpy()
+        return arrays
+
+    return transform
+
+
 def train_point(
-    data: dict,
-    labels: dict,
-    smoothed: np.ndarray | None,
+    data,
+    labels: dict | None,
+    smoothed,
     pipeline: PipelineConfig,
     net_cfg: PointNetConfig,
     cfg: TrainPointConfig,
     device: str = "cpu",
     desc: str = "point",
     log=print,
+    opts: RunOptions | None = None,
+    t_r: float = 200.0,
 ) -> PointNet:
-    """data: shard arrays; labels: pseudo_labels(); smoothed: [M,K,H,W] camera heatmaps after
-    smoothing (fusion only)."""
+    """data: a dict of arrays or a ShardSet; labels: pseudo_labels() of every sample (None: computed
+    here, shard by shard, with `t_r`); smoothed (fusion only): [M,K,H,W] smoothed camera heatmaps
+    of every sample, or the frozen CameraNet whose heatmaps are computed per shard as it is read."""
+    opts = opts or RunOptions(device=device)
+    device, d = opts.device, opts.dist
     if cfg.fusion != (smoothed is not None) or net_cfg.in_features != (3 + K if cfg.fusion else 3):
         raise ValueError("fusion needs smoothed heatmaps and 3+K input features; LiDAR-only neither")
     gen, rng = seed_everything(cfg.seed)
-    counts_np = data["points_count"]
-    usable = np.flatnonzero((counts_np > 0) & (labels["weight"] > 0).any(axis=1))
-    m = len(usable)
+    source = Source(data)
+    if labels is None:
+        labels = stream_labels(source, pipeline, t_r, cfg.depth_correction)
+    counts_np = source.column("points_count")
+    usable_mask = (counts_np > 0) & (labels["weight"] > 0).any(axis=1)
+    m = int(usable_mask.sum())
     if m == 0:
         raise ValueError("no training sample has points and a pseudo label")
-    xyz_all = torch.from_numpy(data["points_xyz"])
-    uv_all = torch.from_numpy(data["points_uv"])
-    counts = torch.from_numpy(counts_np.astype(np.int64))
     kp3d = torch.from_numpy(labels["kp3d"])
     weight = torch.from_numpy(labels["weight"])
     vis = torch.from_numpy(labels["visible"].astype(np.float32))
-    kp2d = torch.from_numpy(data["kp2d"])
-    sm = None if smoothed is None else torch.from_numpy(smoothed)
-    n, p, s = pipeline.num_points, xyz_all.shape[1], pipeline.image_size
+    keys = ["points_xyz", "points_uv", "points_count", "kp2d"]
+    transform = None
+    sm_all = None
+    if isinstance(smoothed, CameraNet):
+        keys.append("image")
+        transform = shard_heatmaps(smoothed.to(device).eval(), pipeline, device)
+    elif smoothed is not None:
+        sm_all = torch.from_numpy(smoothed)
+    n, s = pipeline.num_points, pipeline.image_size
 
     net = PointNet(net_cfg).to(device)
     if cfg.optimizer == "adam":
@@ -314,7 +588,11 @@ def train_point(
             net.parameters(), lr=cfg.lr, momentum=cfg.momentum, weight_decay=cfg.weight_decay, nesterov=True
         )
     steps = cfg.steps if cfg.steps > 0 else int(round(cfg.epochs * max(1, m // cfg.batch_size)))
-    order = batches(rng, usable, cfg.batch_size)
+    window = source.window(keys, opts)
+    sampler = IndexSampler(source.shards, usable_mask, cfg.batch_size, window, rng)
+    loader = ShardLoader(source.shards, keys, 2 * window, transform)
+    model = distributed.wrap(net, d, device)
+    stage = Stage(desc, net, opt, sampler, gen, opts)
 
     def lr_at(step, total):
         if step < cfg.warmup_steps:
@@ -323,35 +601,50 @@ def train_point(
         return cfg.lr * 0.5 * (1 + math.cos(math.pi * min(1.0, t)))
 
     def batch_loss(_step):
-        idx = torch.from_numpy(next(order))
-        sel = select_points(counts[idx], n, p, gen)
-        xyz = torch.gather(xyz_all[idx], 1, sel.unsqueeze(2).expand(-1, -1, 3))
-        uv = torch.gather(uv_all[idx], 1, sel.unsqueeze(2).expand(-1, -1, 2))
+        idx_np = sampler.next()
+        loader.prefetch(sampler.upcoming_shards())
+        b = loader.gather(idx_np)
+        idx = torch.from_numpy(idx_np)
+        xyz_b, uv_b = torch.from_numpy(b["points_xyz"]), torch.from_numpy(b["points_uv"])
+        # the point axis is the whole set's widest person (ShardSet pads every shard to it)
+        sel = select_points(torch.from_numpy(b["points_count"].astype(np.int64)), n, xyz_b.shape[1], gen)
+        xyz = torch.gather(xyz_b, 1, sel.unsqueeze(2).expand(-1, -1, 3))
+        uv = torch.gather(uv_b, 1, sel.unsqueeze(2).expand(-1, -1, 2))
         target = kp3d[idx]
         if cfg.rotate_deg > 0:
             ang = (torch.rand(len(idx), generator=gen) * 2 - 1) * math.radians(cfg.rotate_deg)
             xyz, target = rotate_z(xyz, ang), rotate_z(target, ang)
-        x = point_batch(xyz, uv, None if sm is None else sm[idx], s).to(device)
-        pred, seg_logits = net(x)
-        loss = regression_loss(pred, target.to(device), weight[idx].to(device))
+        if transform is not None:
+            sm = torch.from_numpy(b["smoothed"])
+        else:
+            sm = None if sm_all is None else sm_all[idx]
+        # every process builds the global batch (one random stream) and trains on its slice
+        mine = d.slice(len(idx))
+        x = point_batch(xyz[mine], uv[mine], None if sm is None else sm[mine], s).to(device)
+        pred, seg_logits = model(x)
+        pred, seg_logits = pred.float(), seg_logits.float()
+        loss = regression_loss(pred, target[mine].to(device), weight[idx][mine].to(device))
         if cfg.seg:
-            seg_lab = segmentation_labels(kp2d[idx], vis[idx], uv, s, cfg.seg_radius).to(device)
+            seg_lab = segmentation_labels(
+                torch.from_numpy(b["kp2d"])[mine], vis[idx][mine], uv[mine], s, cfg.seg_radius
+            ).to(device)
             loss = loss + cfg.seg_weight * segmentation_loss(
-                seg_logits, seg_lab, vis[idx].to(device), cfg.w_pos, cfg.w_neg
+                seg_logits, seg_lab, vis[idx][mine].to(device), cfg.w_pos, cfg.w_neg
             )
         return loss
 
     t0 = time.time()
-    history = fit(
-        net,
-        opt,
-        batch_loss,
-        lr_at,
-        steps,
-        time_budget_s=cfg.time_budget_s,
-        min_steps=2 * cfg.warmup_steps,
-        desc=desc,
-    )
+    try:
+        history = stage.run(
+            batch_loss,
+            lr_at,
+            steps,
+            time_budget_s=cfg.time_budget_s,
+            min_steps=2 * cfg.warmup_steps,
+            batch_size=cfg.batch_size,
+        )
+    finally:
+        loader.close()
     net.loss_history = history
     net.trained_epochs = len(history) * cfg.batch_size / m
     log(

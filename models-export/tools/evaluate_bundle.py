@@ -21,31 +21,14 @@ import sys
 from pathlib import Path
 
 import numpy as np
-import onnxruntime as ort
-import torch
 
 from posefuse_train import data as data_mod
+from posefuse_train.bundle_eval import predictions, sessions
 from posefuse_train.config import PipelineConfig
-from posefuse_train.evaluate import camera_only, evaluate
-from posefuse_train.fusion import sample_features, smooth_heatmaps
+from posefuse_train.evaluate import evaluate
 from posefuse_train.metrics import local_to_vehicle
 
 MODES = ("auto", "fusion", "lidar", "camera")
-
-
-def normalize(images: np.ndarray, cfg: PipelineConfig) -> np.ndarray:
-    """uint8 [M,S,S,3] -> float32 [M,3,S,S], as src/pipeline/crop.rs normalizes."""
-    mean = np.asarray(cfg.mean, dtype=np.float32)
-    std = np.asarray(cfg.std, dtype=np.float32)
-    scale = (1.0 / (255.0 * std)).astype(np.float32)
-    shift = (mean / std).astype(np.float32)
-    x = images.astype(np.float32) * scale - shift
-    return np.ascontiguousarray(x.transpose(0, 3, 1, 2))
-
-
-def run(session: ort.InferenceSession, name: str, x: np.ndarray, batch: int = 256) -> list[np.ndarray]:
-    outs = [session.run(None, {name: x[a : a + batch]}) for a in range(0, len(x), batch)]
-    return [np.concatenate([o[i] for o in outs], axis=0) for i in range(len(outs[0]))]
 
 
 def same_config(a: PipelineConfig, b: PipelineConfig) -> bool:
@@ -111,27 +94,6 @@ def read_fixtures(root: Path, d: dict) -> dict:
     return out
 
 
-def predictions(bundle: Path, d: dict, cfg: PipelineConfig, threads: int = 1) -> dict:
-    """Every person through every network: fusion, LiDAR-only and camera lifting (model-input
-    coordinates)."""
-    manifest = json.loads((bundle / "manifest.json").read_text())
-    opts = ort.SessionOptions()
-    opts.intra_op_num_threads = threads
-    sess = {
-        k: ort.InferenceSession(str(bundle / v["file"]), opts, providers=["CPUExecutionProvider"])
-        for k, v in manifest["models"].items()
-    }
-    (heat,) = run(sess["camera"], "image", normalize(d["image"], cfg))[:1]
-    smoothed = smooth_heatmaps(torch.from_numpy(heat), cfg.smoothing_kernel, cfg.smoothing_sigma)
-    feats = sample_features(smoothed, torch.from_numpy(d["serve_uv"]), cfg.image_size).numpy()
-    fused = np.concatenate([d["serve_xyz"], feats], axis=2).astype(np.float32)
-    return {
-        "fusion": run(sess["point_fusion"], "points", fused)[0],
-        "lidar": run(sess["point_lidar"], "points", np.ascontiguousarray(d["serve_xyz"]))[0],
-        "camera": camera_only(heat, d, cfg),
-    }
-
-
 def evaluate_bundle(bundle: Path, root: Path, fixtures_only: bool, modes=("auto",), threads: int = 1):
     """(report per mode, per-person predictions per mode). A report holds the persons scored,
     those skipped, the frames the server refuses and the metrics over all persons and per mode
@@ -148,7 +110,7 @@ def evaluate_bundle(bundle: Path, root: Path, fixtures_only: bool, modes=("auto"
         m = len(d["points_count"])
         d["box3d"] = np.asarray(fx["box3d"], np.float64)
     has_image = np.ones(m, bool) if fx is None else np.asarray(fx["image"], bool)
-    pred = predictions(bundle, d, cfg, threads)
+    pred = predictions(sessions(bundle, threads), d, cfg)
     reports, per_person = {}, {}
     for requested in modes:
         mode = person_modes(requested, d, has_image, cfg)

@@ -1,0 +1,347 @@
+"""One command from a data set to a served bundle: the camera net, then the fusion and the
+LiDAR-only point nets behind it, the bundle exported and scored on the test set through the
+server's evaluation path (bundle_eval), its manifest recording the recipe, the data, the command,
+the versions, the metrics and the time.
+
+    python -m posefuse_train fit --train data/street_train --test data/street_test --out models/mine
+
+A run keeps its state in a work directory (default: OUT.work): the resolved recipe, log.jsonl
+(losses every 50 steps, the held-out metrics at the end), each stage's resumable checkpoint and,
+once a stage is done, its network (camera.pt, fusion.pt, lidar.pt). `--resume` continues an
+interrupted run from there to the same weights as an uninterrupted one (same device and number
+of processes). Under `torchrun --nproc-per-node N` the stages run data-parallel (DDP); rank 0
+writes everything.
+"""
+
+from __future__ import annotations
+
+import datetime as dt
+import json
+import os
+import platform
+import shlex
+import shutil
+import subprocess
+import sys
+import time
+from dataclasses import asdict, dataclass, replace
+from pathlib import Path
+
+import numpy as np
+import onnx
+import onnxruntime
+import torch
+
+from . import __version__, bundle_eval, distributed
+from . import recipe as recipes
+from .camera_net import CameraNet
+from .export import camera_from_checkpoint, export_bundle, load_checkpoint, point_from_checkpoint
+from .shards import ShardSet
+from .train import RunOptions, Stopped, checkpoint, stream_labels, train_camera, train_point
+
+STAGES = ("camera", "fusion", "lidar")
+
+
+@dataclass
+class FitArgs:
+    train: Path
+    test: Path
+    out: Path
+    recipe: str = "cpu"
+    overrides: tuple[str, ...] = ()
+    work: Path | None = None
+    device: str = "auto"
+    amp: str = "auto"  # auto: the recipe's on CUDA, none on the CPU
+    resume: bool = False
+    stop_after: str = ""  # STAGE:STEP, e.g. fusion:200: stop there (checkpoint written)
+    memory_mb: float = 3000.0
+    checkpoint_every: int = 0  # 0: the recipe's
+    name: str = "default"
+    version: str = __version__
+    threads: int = 0
+    command: str = ""
+
+
+def resolve_device(device: str) -> str:
+    if device == "auto":
+        return "cuda" if torch.cuda.is_available() else "cpu"
+    if device.startswith("cuda") and not torch.cuda.is_available():
+        raise SystemExit("--device cuda: PyTorch sees no CUDA device (docs/TRAINING.md, 'GPUs')")
+    return device
+
+
+def versions() -> dict:
+    commit = None
+    try:
+        commit = subprocess.run(
+            ["git", "rev-parse", "HEAD"],
+            cwd=Path(__file__).resolve().parent,
+            capture_output=True,
+            text=True,
+            check=True,
+        ).stdout.strip()
+    except (OSError, subprocess.CalledProcessError):
+        pass
+    return {
+        "posefuse_train": __version__,
+        "git_commit": commit,
+        "python": platform.python_version(),
+        "torch": torch.__version__,
+        "numpy": np.__version__,
+        "onnx": onnx.__version__,
+        "onnxruntime": onnxruntime.__version__,
+    }
+
+
+class Log:
+    """log.jsonl of the run (rank 0): one JSON object a line, each with its time."""
+
+    def __init__(self, path: Path, enabled: bool):
+        self.path, self.enabled = path, enabled
+
+    def __call__(self, record: dict) -> None:
+        if not self.enabled:
+            return
+        with open(self.path, "a") as f:
+            f.write(json.dumps({"time": round(time.time(), 3), **record}) + "\n")
+
+    def say(self, message: str) -> None:
+        if self.enabled:
+            print(f"[{time.strftime('%H:%M:%S')}] {message}", flush=True)
+
+
+def _prepare_work(a: FitArgs, recipe: dict, d: distributed.Dist) -> Path:
+    work = Path(a.work) if a.work else a.out.with_name(a.out.name + ".work")
+    saved = work / "recipe.json"
+    if d.main:
+        if work.exists() and not a.resume and any(work.iterdir()):
+            raise SystemExit(f"{work} holds an earlier run: --resume to continue it, or remove it")
+        work.mkdir(parents=True, exist_ok=True)
+        if saved.exists():
+            if recipes.dumps(json.loads(saved.read_text())) != recipes.dumps(recipe):
+                raise SystemExit(f"{work}: --resume with another recipe than the run's ({saved})")
+        else:
+            saved.write_text(json.dumps(recipe, indent=2, sort_keys=True) + "\n")
+    d.barrier()
+    return work
+
+
+def _stop_at(a: FitArgs, stage: str) -> int:
+    if not a.stop_after:
+        return 0
+    name, _, step = a.stop_after.partition(":")
+    if name not in STAGES or not step.isdigit():
+        raise SystemExit(f"--stop-after {a.stop_after!r}: expected STAGE:STEP with STAGE in {STAGES}")
+    return int(step) if name == stage else 0
+
+
+def fit(a: FitArgs) -> dict | None:
+    """Runs (or resumes) the whole recipe; returns the manifest (rank 0) or None (other ranks,
+    or a run stopped by --stop-after)."""
+    t_start = time.time()
+    device = distributed.local_device(resolve_device(a.device))
+    d = distributed.from_env(device)
+    if a.threads:
+        torch.set_num_threads(a.threads)
+    recipe = recipes.load(a.recipe, list(a.overrides))
+    work = _prepare_work(a, recipe, d)
+    log = Log(work / "log.jsonl", d.main)
+
+    train, test = ShardSet(a.train), ShardSet(a.test)
+    want = recipe["recipe"].get("image_size")
+    if want and train.cfg.image_size != want:
+        raise SystemExit(
+            f"recipe {recipe['recipe']['name']!r} is for {want} px crops; {a.train} has "
+            f"{train.cfg.image_size} px (simulate/convert with --image-size {want})"
+        )
+    if train.cfg != test.cfg:
+        raise SystemExit(f"train and test preprocessing differ:\n{train.cfg}\n{test.cfg}")
+    pipeline = replace(train.cfg, **recipe.get("pipeline", {}))
+    run = recipe.get("run", {})
+    amp = a.amp if a.amp != "auto" else (run.get("amp", "none") if device.startswith("cuda") else "none")
+    base = RunOptions(
+        device=device,
+        amp=amp == "bf16",
+        channels_last=bool(run.get("channels_last", False)) and device.startswith("cuda"),
+        memory_mb=a.memory_mb,
+        checkpoint_every=a.checkpoint_every or int(run.get("checkpoint_every", 0)),
+        resume=a.resume,
+        record=log,
+        dist=d,
+    )
+    log(
+        {
+            "event": "start",
+            "command": a.command,
+            "recipe": recipe["recipe"]["name"],
+            "device": device,
+            "processes": d.world,
+            "train": train.describe(),
+            "test": test.describe(),
+        }
+    )
+    log.say(
+        f"fit: {len(train)} train / {len(test)} test persons, S={pipeline.image_size}, recipe "
+        f"{recipe['recipe']['name']}, {device} x{d.world}, work {work}"
+    )
+    timings: dict[str, float] = {}
+
+    def opts(stage: str) -> RunOptions:
+        return replace(base, checkpoint=work / f"{stage}.ckpt", stop_at_step=_stop_at(a, stage))
+
+    def done(stage: str) -> Path:
+        return work / f"{stage}.pt"
+
+    try:
+        # camera net
+        net_cfg, cam_cfg = recipes.camera_config(recipe)
+        if not done("camera").exists():
+            t = time.time()
+            camera = train_camera(train, pipeline, net_cfg, cam_cfg, log=log.say, opts=opts("camera"))
+            timings["camera_s"] = time.time() - t
+            _finish(log, d, camera, pipeline, cam_cfg, a.train, done("camera"), "camera", timings)
+        # every process reads the saved net: under DDP each kept its own BatchNorm running
+        # statistics, and the fusion features must be the exported camera's
+        camera = camera_from_checkpoint(load_checkpoint(done("camera"))).to(device).eval()
+
+        # point nets behind it: one set of pseudo labels for both
+        labels = None
+        for stage, fusion in (("fusion", True), ("lidar", False)):
+            pnet_cfg, pcfg = recipes.point_config(recipe, fusion)
+            if done(stage).exists():
+                continue
+            if labels is None:
+                t = time.time()
+                labels = stream_labels(train, pipeline, recipe["data"]["t_r"], pcfg.depth_correction)
+                timings["labels_s"] = time.time() - t
+            t = time.time()
+            features = camera if fusion else None
+            net = train_point(
+                train, labels, features, pipeline, pnet_cfg, pcfg, desc=stage, log=log.say, opts=opts(stage)
+            )
+            timings[f"{stage}_s"] = time.time() - t
+            _finish(log, d, net, pipeline, pcfg, a.train, done(stage), stage, timings)
+    except Stopped as stop:
+        log({"event": "stopped", "reason": str(stop)})
+        log.say(f"{stop}; continue with --resume")
+        return None
+
+    if not d.main:
+        d.barrier()
+        return None
+    # the bundle is exported from the saved stage networks: plain modules, the weights on disk
+    camera = camera_from_checkpoint(load_checkpoint(done("camera")))
+    nets = {s: point_from_checkpoint(load_checkpoint(done(s))) for s in ("fusion", "lidar")}
+    manifest = _export(a, recipe, work, camera, nets, pipeline, train, test, device, d, log)
+    timings["total_s"] = time.time() - t_start
+    manifest["training"]["time_s"] = {**manifest["training"].get("time_s", {}), **timings}
+    text = json.dumps(manifest, indent=2) + "\n"
+    (a.out / "manifest.json").write_text(text)
+    log({"event": "done", "time_s": timings})
+    d.barrier()
+    return json.loads(text)
+
+
+def _finish(log, d, net, pipeline, cfg, train_path, path: Path, stage: str, timings) -> None:
+    """A stage's network saved once it is trained (rank 0), and the resumable state dropped."""
+    if d.main:
+        torch.save(checkpoint(net, pipeline, cfg, str(train_path)), path)
+        ckpt = path.with_suffix(".ckpt")
+        if ckpt.exists():
+            ckpt.unlink()
+        log({"event": "stage_done", "stage": stage, "steps": len(net.loss_history)})
+    d.barrier()
+
+
+def _export(a, recipe, work, camera: CameraNet, nets, pipeline, train, test, device, d, log) -> dict:
+    staged = work / "bundle"
+    if staged.exists():
+        shutil.rmtree(staged)
+    cam_cfg = recipes.camera_config(recipe)[1]
+    export_bundle(
+        staged,
+        camera,
+        nets["fusion"],
+        nets["lidar"],
+        pipeline,
+        trained=True,
+        name=a.name,
+        version=a.version,
+    )
+    t = time.time()
+    log.say(f"held-out evaluation of the bundle on {a.test} ({len(test)} persons, ONNX Runtime)")
+    metrics = bundle_eval.held_out(staged, test, threads=max(1, torch.get_num_threads()))
+    eval_s = time.time() - t
+    for mode, m in metrics.items():
+        log({"event": "held_out", "mode": mode, **{k: v for k, v in m.items() if not isinstance(v, dict)}})
+        log.say(
+            f"held-out {mode:6s}: OKS/ACC@3D {100 * (m['oks_acc_3d'] or 0):.2f} %, "
+            f"MPJPE {100 * (m['mpjpe_3d_m'] or 0):.2f} cm, OKS/ACC@2D {100 * (m['oks_acc_2d'] or 0):.2f} %"
+        )
+    manifest = json.loads((staged / "manifest.json").read_text())
+    parity = manifest["training"]["config"]["onnx_parity_max_abs_diff"]
+    manifest["training"] = {
+        "trained": True,
+        "recipe": recipe,
+        "command": a.command,
+        "data": {"train": train.describe(), "test": test.describe()},
+        "config": {
+            "camera": {**asdict(camera.cfg), **asdict(cam_cfg)},
+            "fusion": {**asdict(recipes.point_config(recipe, True)[1]), "net": asdict(nets["fusion"].cfg)},
+            "lidar": {**asdict(recipes.point_config(recipe, False)[1]), "net": asdict(nets["lidar"].cfg)},
+            "onnx_parity_max_abs_diff": parity,
+        },
+        "versions": versions(),
+        "device": device,
+        "processes": d.world,
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, {torch.get_num_threads()} torch threads",
+        "finished": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
+        "time_s": {"held_out_eval_s": eval_s},
+    }
+    manifest["metrics"] = {"held_out": metrics}
+    (staged / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
+    out = Path(a.out)
+    tmp = out.with_name(out.name + ".partial")
+    if tmp.exists():
+        shutil.rmtree(tmp)
+    shutil.copytree(staged, tmp)
+    if out.exists():
+        shutil.rmtree(out)
+    os.replace(tmp, out)
+    log({"event": "bundle", "path": str(out)})
+    log.say(f"bundle -> {out}")
+    return manifest
+
+
+def command_line(argv) -> str:
+    return "python -m posefuse_train " + " ".join(shlex.quote(x) for x in argv)
+
+
+def main_fit(argv, parser) -> int:
+    a = parser.parse_args(argv)
+    args = FitArgs(
+        train=Path(a.train),
+        test=Path(a.test),
+        out=Path(a.out),
+        recipe=a.recipe,
+        overrides=tuple(a.set or ()),
+        work=Path(a.work) if a.work else None,
+        device=a.device,
+        amp=a.amp,
+        resume=a.resume,
+        stop_after=a.stop_after or "",
+        memory_mb=a.memory_mb,
+        checkpoint_every=a.checkpoint_every,
+        name=a.name,
+        version=a.version,
+        threads=a.threads,
+        command=command_line(["fit", *argv]),
+    )
+    try:
+        manifest = fit(args)
+    except ValueError as e:
+        print(f"fit: {e}", file=sys.stderr)
+        return 2
+    finally:
+        distributed.shutdown()
+    return 0 if manifest is not None or int(os.environ.get("RANK", "0")) != 0 or args.stop_after else 1

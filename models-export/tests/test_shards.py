@@ -1,0 +1,152 @@
+"""Training data read lazily: the index, the sampler's order (the old in-memory order when the set
+fits, shuffled across shards when it does not), the loader's bound on shards in memory, and
+training on shards equal to training on the same arrays in memory."""
+
+import numpy as np
+import pytest
+import torch
+
+from posefuse_train import labels as labels_mod
+from posefuse_train import train
+from posefuse_train.config import CameraNetConfig, PointNetConfig
+from posefuse_train.data import load
+from posefuse_train.keypoints import K
+from posefuse_train.shards import IndexSampler, ShardLoader, ShardSet, window_shards
+
+
+def old_batches(rng, indices, batch_size):
+    """The trainer's order before it streamed: a fresh permutation per epoch, carried over."""
+    order = np.empty(0, np.int64)
+    while True:
+        if len(order) < batch_size:
+            order = np.concatenate([order, rng.permutation(indices)])
+        yield order[:batch_size]
+        order = order[batch_size:]
+
+
+def test_the_index_reads_counts_and_the_widest_person_without_the_arrays(synthetic_sets):
+    s = ShardSet(synthetic_sets[0])
+    d, cfg, _ = load(synthetic_sets[0])
+    assert s.counts.tolist() == [40, 40, 16] and len(s) == 96
+    assert s.points_width == d["points_xyz"].shape[1] == int(d["points_count"].max())
+    assert s.cfg == cfg
+    assert s.shard_of(np.array([0, 39, 40, 95])).tolist() == [0, 0, 1, 2]
+    # every shard is padded to the same point width, and a shard's rows are the set's rows
+    got = s.read(2, ["points_xyz", "kp2d"])
+    assert got["points_xyz"].shape[1] == s.points_width
+    np.testing.assert_array_equal(got["points_xyz"], d["points_xyz"][80:96])
+    assert s.shard_bytes(["image"]) >= 40 * 32 * 32 * 3
+
+
+def test_a_set_that_fits_is_drawn_in_the_old_in_memory_order(synthetic_sets):
+    s = ShardSet(synthetic_sets[0])
+    usable = np.ones(len(s), bool)
+    usable[[3, 50, 90]] = False
+    sampler = IndexSampler(s, usable, 32, window=s.num_shards, rng=np.random.default_rng(7))
+    old = old_batches(np.random.default_rng(7), np.flatnonzero(usable), 32)
+    for _ in range(10):
+        np.testing.assert_array_equal(sampler.next(), next(old))
+
+
+def test_a_set_that_does_not_fit_is_shuffled_across_shards_one_window_at_a_time(synthetic_sets):
+    s = ShardSet(synthetic_sets[0])
+    usable = np.ones(len(s), bool)
+    sampler = IndexSampler(s, usable, 8, window=1, rng=np.random.default_rng(0))
+    epochs = [np.concatenate([sampler.next() for _ in range(12)]) for _ in range(3)]
+    for e in epochs:
+        assert sorted(e.tolist()) == list(range(96))  # every sample once per epoch
+    # the shards come in a different order in different epochs...
+    firsts = [int(s.shard_of(e[:1])[0]) for e in epochs]
+    orders = [tuple(dict.fromkeys(s.shard_of(e).tolist())) for e in epochs]
+    assert len(set(orders)) > 1, (firsts, orders)
+    # ...and a batch draws from at most two shards (the end of one window, the start of the next)
+    for e in epochs:
+        for b in e.reshape(-1, 8):
+            assert len(set(s.shard_of(b).tolist())) <= 2
+
+
+def test_the_sampler_resumes_from_its_state(synthetic_sets):
+    s = ShardSet(synthetic_sets[0])
+    a = IndexSampler(s, np.ones(96, bool), 24, window=1, rng=np.random.default_rng(3))
+    for _ in range(5):
+        a.next()
+    state = a.state_dict()
+    b = IndexSampler(s, np.ones(96, bool), 24, window=1, rng=np.random.default_rng(99))
+    b.load_state_dict(state)
+    for _ in range(10):
+        np.testing.assert_array_equal(a.next(), b.next())
+
+
+def test_the_loader_keeps_at_most_its_capacity_of_shards_and_gathers_the_right_rows(synthetic_sets):
+    s = ShardSet(synthetic_sets[0])
+    d, _, _ = load(synthetic_sets[0])
+    loader = ShardLoader(s, ["kp2d", "points_xyz"], capacity=1)
+    try:
+        sampler = IndexSampler(s, np.ones(96, bool), 8, window=1, rng=np.random.default_rng(0))
+        for _ in range(30):
+            idx = sampler.next()
+            loader.prefetch(sampler.upcoming_shards())
+            got = loader.gather(idx)
+            np.testing.assert_array_equal(got["kp2d"], d["kp2d"][idx])
+            np.testing.assert_array_equal(got["points_xyz"], d["points_xyz"][idx])
+            assert len(loader.cache) <= 1
+    finally:
+        loader.close()
+    assert loader.loads > s.num_shards  # shards were dropped and read again
+
+
+def test_the_window_is_a_third_of_the_memory_budget(synthetic_sets):
+    s = ShardSet(synthetic_sets[0])
+    per = s.shard_bytes(["image"])
+    assert window_shards(s, ["image"], 3 * per / 1e6) == 1
+    assert window_shards(s, ["image"], 6 * per / 1e6) == 2
+    assert window_shards(s, ["image"], 1e-6) == 1
+    assert window_shards(s, ["image"], 1e6) == s.num_shards
+
+
+def same_weights(a, b) -> bool:
+    sa, sb = a.state_dict(), b.state_dict()
+    return sa.keys() == sb.keys() and all(torch.equal(sa[k], sb[k]) for k in sa)
+
+
+def test_training_on_shards_that_fit_equals_training_on_the_arrays(synthetic_sets):
+    d, cfg, _ = load(synthetic_sets[0])
+    shards = ShardSet(synthetic_sets[0])
+    net_cfg = CameraNetConfig(backbone="resnet18-w16", deconv_channels=16)
+    tcfg = train.TrainCameraConfig(steps=4, batch_size=32)
+    quiet = dict(log=lambda _: None)
+    cam_mem = train.train_camera(d, cfg, net_cfg, tcfg, **quiet)
+    cam_shards = train.train_camera(shards, cfg, net_cfg, tcfg, **quiet)
+    assert cam_mem.loss_history == cam_shards.loss_history and same_weights(cam_mem, cam_shards)
+
+    lab = labels_mod.pseudo_labels(d, cfg, t_r=200.0)
+    streamed = train.stream_labels(shards, cfg, 200.0, depth_correction=False)
+    for k in ("kp3d", "weight", "visible"):
+        np.testing.assert_array_equal(lab[k], streamed[k])
+    # the fusion net: heatmaps precomputed over the arrays, or computed per shard as it is read
+    from posefuse_train.fusion import smoothed
+
+    sm = smoothed(train.predict_heatmaps(cam_mem, d["image"], cfg, progress=False), cfg)
+    pcfg = train.TrainPointConfig(steps=4, batch_size=32, warmup_steps=2)
+    pnet = PointNetConfig(
+        in_features=3 + K,
+        local_channels=(16,),
+        global_channels=(32,),
+        head_channels=(32,),
+        seg_channels=(16,),
+    )
+    pt_mem = train.train_point(d, lab, sm, cfg, pnet, pcfg, **quiet)
+    pt_shards = train.train_point(shards, streamed, cam_shards, cfg, pnet, pcfg, **quiet)
+    np.testing.assert_allclose(pt_mem.loss_history, pt_shards.loss_history, rtol=1e-5)
+
+
+@pytest.mark.parametrize("memory_mb", [0.0, 0.05])
+def test_a_streamed_run_trains_from_every_shard(synthetic_sets, memory_mb):
+    shards = ShardSet(synthetic_sets[0])
+    d, cfg, _ = load(synthetic_sets[0])
+    opts = train.RunOptions(memory_mb=memory_mb)
+    tcfg = train.TrainCameraConfig(steps=6, batch_size=16)
+    net = train.train_camera(
+        shards, cfg, CameraNetConfig(deconv_channels=16), tcfg, log=lambda _: None, opts=opts
+    )
+    assert len(net.loss_history) == 6 and all(np.isfinite(net.loss_history))
