@@ -59,16 +59,16 @@ def sessions(bundle: Path, threads: int = 1) -> dict:
     }
 
 
-def predictions(sess: dict, d: dict, cfg: PipelineConfig) -> dict:
+def predictions(sess: dict, d: dict, cfg: PipelineConfig, batch: int = 256) -> dict:
     """Every person through every network: fusion, LiDAR-only and camera lifting (model-input
-    coordinates)."""
-    (heat,) = run(sess["camera"], "image", normalize(d["image"], cfg))[:1]
+    coordinates), `batch` persons a call."""
+    (heat,) = run(sess["camera"], "image", normalize(d["image"], cfg), batch)[:1]
     smoothed = smooth_heatmaps(torch.from_numpy(heat), cfg.smoothing_kernel, cfg.smoothing_sigma)
     feats = sample_features(smoothed, torch.from_numpy(d["serve_uv"]), cfg.image_size).numpy()
     fused = np.concatenate([d["serve_xyz"], feats], axis=2).astype(np.float32)
     return {
-        "fusion": run(sess["point_fusion"], "points", fused)[0],
-        "lidar": run(sess["point_lidar"], "points", np.ascontiguousarray(d["serve_xyz"]))[0],
+        "fusion": run(sess["point_fusion"], "points", fused, batch)[0],
+        "lidar": run(sess["point_lidar"], "points", np.ascontiguousarray(d["serve_xyz"]), batch)[0],
         "camera": camera_only(heat, d, cfg),
     }
 
@@ -83,7 +83,8 @@ def held_out(bundle: Path, test: ShardSet, threads: int = 1, progress=None) -> d
     kept: list[dict] = []
     for i in range(test.num_shards):
         d = test.read(i, ("image", *EVAL_KEYS))
-        p = predictions(sess, d, cfg)
+        # 32 persons a call: a point net's activations are [persons x N, channels]
+        p = predictions(sess, d, cfg, batch=32)
         preds["camera"].append(p["camera"])
         for mode in ("fusion", "lidar"):
             preds[mode].append(with_fallback(p[mode], p["camera"], d, cfg))

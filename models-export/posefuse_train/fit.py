@@ -93,6 +93,16 @@ def versions() -> dict:
     }
 
 
+def max_rss_mb() -> float | None:
+    """This process's peak resident memory so far (Linux and macOS), MB."""
+    try:
+        import resource
+    except ImportError:  # pragma: no cover - Windows
+        return None
+    peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
+    return round(peak / (2**20 if sys.platform == "darwin" else 2**10), 1)
+
+
 class Log:
     """log.jsonl of the run (rank 0): one JSON object a line, each with its time."""
 
@@ -102,8 +112,9 @@ class Log:
     def __call__(self, record: dict) -> None:
         if not self.enabled:
             return
+        record = {"time": round(time.time(), 3), **record, "max_rss_mb": max_rss_mb()}
         with open(self.path, "a") as f:
-            f.write(json.dumps({"time": round(time.time(), 3), **record}) + "\n")
+            f.write(json.dumps(record) + "\n")
 
     def say(self, message: str) -> None:
         if self.enabled:
@@ -214,6 +225,7 @@ def fit(a: FitArgs) -> dict | None:
                 t = time.time()
                 labels = stream_labels(train, pipeline, recipe["data"]["t_r"], pcfg.depth_correction)
                 timings["labels_s"] = time.time() - t
+                log({"event": "labels", "persons": len(labels["weight"])})
             t = time.time()
             features = camera if fusion else None
             net = train_point(

@@ -136,7 +136,8 @@ def stream_labels(data, cfg: PipelineConfig, t_r: float, depth_correction: bool)
     source = data if isinstance(data, Source) else Source(data)
     keys = ("kp2d", "kp2d_visible", "points_xyz", "points_uv", "points_count", "box3d", "sensor_xyz")
     parts = [
-        pseudo_labels(source.shards.read(i, keys), cfg, t_r, depth_correction)
+        # chunks of 128: eq. 1 holds [chunk, K, P, 2] float64 distances (P: the widest person)
+        pseudo_labels(source.shards.read(i, keys), cfg, t_r, depth_correction, chunk=128)
         for i in range(source.shards.num_shards)
     ]
     return {k: np.concatenate([p[k] for p in parts], axis=0) for k in ("kp3d", "weight", "visible")}
