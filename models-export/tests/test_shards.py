@@ -150,3 +150,30 @@ def test_a_streamed_run_trains_from_every_shard(synthetic_sets, memory_mb):
         shards, cfg, CameraNetConfig(deconv_channels=16), tcfg, log=lambda _: None, opts=opts
     )
     assert len(net.loss_history) == 6 and all(np.isfinite(net.loss_history))
+
+
+def test_bf16_autocast_and_channels_last_train_on_the_cpu(synthetic_sets):
+    """The CUDA options' code path (bf16 autocast, channels-last camera input), run on the CPU:
+    finite losses, float32 weights, the same samples as without them."""
+    shards = ShardSet(synthetic_sets[0])
+    d, cfg, _ = load(synthetic_sets[0])
+    tcfg = train.TrainCameraConfig(steps=3, batch_size=16)
+    plain = train.train_camera(shards, cfg, CameraNetConfig(deconv_channels=16), tcfg, log=lambda _: None)
+    opts = train.RunOptions(amp=True, channels_last=True)
+    fast = train.train_camera(
+        shards, cfg, CameraNetConfig(deconv_channels=16), tcfg, log=lambda _: None, opts=opts
+    )
+    assert len(fast.loss_history) == 3 and all(np.isfinite(fast.loss_history))
+    assert all(p.dtype == torch.float32 for p in fast.parameters())
+    # bf16 rounds the forward pass: close to the float32 run's first loss, not equal
+    assert fast.loss_history[0] == pytest.approx(plain.loss_history[0], rel=0.05)
+    assert fast.loss_history[0] != plain.loss_history[0]
+    lab = labels_mod.pseudo_labels(d, cfg, t_r=200.0)
+    pnet = PointNetConfig(
+        in_features=3, local_channels=(16,), global_channels=(32,), head_channels=(32,), seg_channels=(16,)
+    )
+    pcfg = train.TrainPointConfig(fusion=False, steps=3, batch_size=16, warmup_steps=1)
+    pt = train.train_point(
+        shards, lab, None, cfg, pnet, pcfg, log=lambda _: None, opts=train.RunOptions(amp=True)
+    )
+    assert all(np.isfinite(pt.loss_history))
