@@ -227,16 +227,6 @@ def fit(
     return history
 
 
-def batches(rng: np.random.Generator, indices: np.ndarray, batch_size: int):
-    """Endless batches of `indices`: a fresh permutation each epoch, carried across epochs."""
-    order = np.empty(0, np.int64)
-    while True:
-        if len(order) < batch_size:
-            order = np.concatenate([order, rng.permutation(indices)])
-        yield order[:batch_size]
-        order = order[batch_size:]
-
-
 def seed_everything(seed: int) -> tuple[torch.Generator, np.random.Generator]:
     """Seeds torch (initialisation) and returns the generators of augmentation and sampling."""
     torch.manual_seed(seed)

@@ -81,10 +81,3 @@ def test_the_wall_clock_budget_is_opt_in(budget_s):
     n = len(history)
     assert n == 60 if budget_s == 0 else 10 <= n < 20
     assert lrs[-1] == (n - 1, n) and not net.training
-
-
-def test_endless_batches_cover_every_index_once_per_epoch():
-    gen = train.batches(np.random.default_rng(0), np.arange(10), 4)
-    seen = np.concatenate([next(gen) for _ in range(5)])  # 20 indices: two epochs
-    assert sorted(seen[:8].tolist()) != list(range(8))  # shuffled
-    assert np.bincount(seen, minlength=10).tolist() == [2] * 10

@@ -15,7 +15,8 @@ from posefuse_train.shards import IndexSampler, ShardLoader, ShardSet, window_sh
 
 
 def old_batches(rng, indices, batch_size):
-    """The trainer's order before it streamed: a fresh permutation per epoch, carried over."""
+    """The trainer's order before it streamed (its `train.batches`): a fresh permutation per
+    epoch, carried over into the next."""
     order = np.empty(0, np.int64)
     while True:
         if len(order) < batch_size:
