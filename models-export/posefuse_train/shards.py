@@ -16,7 +16,6 @@ shards at a time, and permutes the samples inside each window.
 from __future__ import annotations
 
 import threading
-import zipfile
 from collections import OrderedDict
 from concurrent.futures import Future, ThreadPoolExecutor
 from pathlib import Path
@@ -44,12 +43,11 @@ class ShardSet:
                 if missing:
                     raise KeyError(f"{path}: missing keys {missing}")
                 pc = z["points_count"]
-            counts.append(len(pc))
-            widest = max(widest, int(pc.max(initial=0)))
-            with zipfile.ZipFile(path) as zf:
-                for info in zf.infolist():
+                for info in z.zip.infolist():  # uncompressed members: file_size is the array's bytes
                     key = info.filename.removesuffix(".npy")
                     member_bytes[key] = max(member_bytes.get(key, 0), info.file_size)
+            counts.append(len(pc))
+            widest = max(widest, int(pc.max(initial=0)))
         self.counts = np.asarray(counts, np.int64)
         self.offsets = np.concatenate([[0], np.cumsum(self.counts)])
         self.points_width = widest

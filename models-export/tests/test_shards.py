@@ -142,7 +142,7 @@ def test_training_on_shards_that_fit_equals_training_on_the_arrays(synthetic_set
 
 
 @pytest.mark.parametrize("memory_mb", [0.0, 0.05])
-def test_a_streamed_run_trains_from_every_shard(synthetic_sets, memory_mb):
+def test_a_run_trains_with_the_set_in_memory_or_one_shard_at_a_time(synthetic_sets, memory_mb):
     shards = ShardSet(synthetic_sets[0])
     d, cfg, _ = load(synthetic_sets[0])
     opts = train.RunOptions(memory_mb=memory_mb)
