@@ -26,7 +26,7 @@ struct Case {
 
 fn encode(img: &image::RgbImage, sampling: jpeg_encoder::SamplingFactor) -> Vec<u8> {
     let mut out = Vec::new();
-    let mut enc = jpeg_encoder::Encoder::new(&mut out, posefuse::sim::dataset::JPEG_QUALITY);
+    let mut enc = jpeg_encoder::Encoder::new(&mut out, posefuse::sample::JPEG_QUALITY);
     enc.set_sampling_factor(sampling);
     enc.encode(img.as_raw(), img.width() as u16, img.height() as u16, jpeg_encoder::ColorType::Rgb).unwrap();
     out
@@ -41,7 +41,7 @@ fn cases(limit: usize) -> Vec<Case> {
         });
         let window = CropTransform { x0: 800.0, y0: 400.0, scale: cfg.image_size as f64 / 300.0, size: cfg.image_size };
         return vec![Case {
-            jpeg444: posefuse::sim::dataset::encode_jpeg(&img).unwrap(),
+            jpeg444: posefuse::sample::encode_jpeg(&img).unwrap(),
             jpeg420: encode(&img, jpeg_encoder::SamplingFactor::R_4_2_0),
             windows: vec![window],
             size: (1920, 1280),

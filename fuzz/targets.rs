@@ -19,7 +19,7 @@ const MAX_SIDE: u32 = 2048;
 /// geometry every person goes through before any pixel (camera choice, projected box, the
 /// person's points and crop).
 pub fn frame_json(data: &[u8]) {
-    let Ok(frame) = posefuse::service::json::parse_json::<Frame>(data) else { return };
+    let Ok(frame) = posefuse::json::parse_json::<Frame>(data) else { return };
     frame_checks(frame);
 }
 

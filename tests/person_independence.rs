@@ -76,7 +76,7 @@ fn image_b64(calibration: &CameraCalibration, boxes: &[Box2d]) -> String {
         fill(0.3, 0.55, 0.48, 1.0, [30, 30, 120]);
         fill(0.52, 0.55, 0.7, 1.0, [30, 30, 120]);
     }
-    let jpeg = posefuse::sim::dataset::encode_jpeg(&img).unwrap();
+    let jpeg = posefuse::sample::encode_jpeg(&img).unwrap();
     base64::engine::general_purpose::STANDARD.encode(jpeg)
 }
 

@@ -292,7 +292,7 @@ fn barrel_calibration(deg: f64) -> CameraCalibration {
 /// A grey 1920×1280 JPEG (base64).
 fn grey_jpeg() -> String {
     let img = image::RgbImage::from_pixel(1920, 1280, image::Rgb([110, 115, 120]));
-    base64::engine::general_purpose::STANDARD.encode(posefuse::sim::dataset::encode_jpeg(&img).unwrap())
+    base64::engine::general_purpose::STANDARD.encode(posefuse::sample::encode_jpeg(&img).unwrap())
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]

@@ -104,7 +104,7 @@ async fn a_jpeg_frame_answers_like_its_pixels() {
     let s = start(config()).await;
     let (w, h, bytes) = pixels_of_fusion_frame();
     let img = image::RgbImage::from_raw(w, h, bytes.clone()).unwrap();
-    let jpeg = posefuse::sim::dataset::encode_jpeg(&img).unwrap();
+    let jpeg = posefuse::sample::encode_jpeg(&img).unwrap();
     let mut v = serde_json::to_value(fusion_frame()).unwrap();
     v["image"] = json!(base64::engine::general_purpose::STANDARD.encode(&jpeg));
     let (status, jpeg_answer) = post_json(&s, &v).await;

@@ -2,7 +2,9 @@
 //! they hit, occlusion labels agree with what the renderer shows, and camera rays match the
 //! calibration.
 
+use posefuse::geometry::nominal_camera;
 use posefuse::geometry::Camera;
+use posefuse::pipeline::NOMINAL_LIDAR_ORIGIN as LIDAR_ORIGIN;
 use posefuse::sim::body::Anthro;
 use posefuse::sim::body::Part;
 use posefuse::sim::dataset::frame_rng;
@@ -15,7 +17,7 @@ use posefuse::sim::render::{render, RayGrid, Region, Rendered};
 use posefuse::sim::scene::{Ground, ObjectKind, Scene, GROUND};
 use posefuse::sim::scene::{Material, Pattern};
 use posefuse::sim::street::{dress, Profile};
-use posefuse::sim::world::{nominal_camera, put_person, sample_world, Look, World, LIDAR_ORIGIN};
+use posefuse::sim::world::{put_person, sample_world, Look, World};
 
 /// The region of the image around a person's 2D box (clipped), coarse enough to stay small.
 fn region_around(world: &World, b: &posefuse::frame::Box2d) -> Region {

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::OnceLock;
 
 use posefuse::pipeline::{PipelineConfig, PointFrame};
-use posefuse::sim::dataset::Sample;
+use posefuse::sample::Sample;
 use posefuse::sim::street::Profile;
 use posefuse::waymo::convert::{convert, frame_points, ConvertOptions};
 use posefuse::waymo::range::{range_image_pixels, SweepPoses};

@@ -5,8 +5,8 @@ use std::time::Duration;
 
 use posefuse::eval::FixtureRun;
 use posefuse::frame::Frame;
+use posefuse::json::parse_json;
 use posefuse::runtime::Runtime;
-use posefuse::service::json::parse_json;
 use posefuse::service::Predictor;
 use tonic_health::pb::health_check_response::ServingStatus;
 

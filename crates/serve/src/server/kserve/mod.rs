@@ -1,0 +1,89 @@
+//! The Open Inference Protocol (KServe v2) beside the native API, on the same port: REST routes
+//! under `/v2` (with the binary tensor data extension) and the gRPC service
+//! `inference.GRPCInferenceService`. Both turn tensors into a [`Frame`](posefuse_core::frame::Frame)
+//! (`tensors`) and call the same `Predictor::predict` as `POST /v1/poses`. docs/KSERVE.md is the
+//! contract.
+
+pub mod config;
+pub mod grpc;
+pub mod non_finite;
+pub mod rest;
+pub mod tensors;
+
+use std::sync::atomic::Ordering;
+
+use super::AppState;
+use posefuse_core::error::{Error, Result};
+use posefuse_core::image_decode::RawImages;
+use tensors::{InputTensor, OutputTensor, RequestedOutput};
+
+/// Server name in server metadata.
+pub const SERVER_NAME: &str = "posefuse";
+/// Protocol extensions served.
+pub const EXTENSIONS: [&str; 1] = ["binary_tensor_data"];
+/// Platform in model metadata: the whole pipeline, not one ONNX graph, answers.
+pub const PLATFORM: &str = "posefuse";
+
+/// Ready for inference: warmed up and not shutting down (as `/readyz`).
+pub fn server_ready(state: &AppState) -> bool {
+    state.ready.load(Ordering::SeqCst) && !state.shutting_down.load(Ordering::SeqCst)
+}
+
+/// The served model's name and version when `name` (and `version`, if given and not empty)
+/// designate it; `NotFound` otherwise. The name is `--model-name` when given (an
+/// InferenceService's), else the bundle manifest's.
+pub fn model(state: &AppState, name: &str, version: Option<&str>) -> Result<(String, String)> {
+    let bundle = state.predictor.bundle();
+    let m = &bundle.manifest;
+    let served = state.v2_model_name.as_deref().unwrap_or(&m.name);
+    if name != served {
+        return Err(Error::NotFound(format!("model `{name}`; this server serves `{served}`")));
+    }
+    match version {
+        Some(v) if !v.is_empty() && v != m.version => {
+            Err(Error::NotFound(format!("version `{v}` of model `{name}`; this server serves `{}`", m.version)))
+        }
+        _ => Ok((served.to_string(), m.version.clone())),
+    }
+}
+
+/// An inference request, whatever its transport.
+#[derive(Debug, Clone)]
+pub struct InferRequest {
+    pub model_name: String,
+    pub model_version: Option<String>,
+    /// The request id, echoed in the response and used as the frame id.
+    pub id: Option<String>,
+    pub inputs: Vec<InputTensor>,
+    /// `None` or empty: every output.
+    pub outputs: Option<Vec<RequestedOutput>>,
+    /// Binary form for outputs that do not say (REST `binary_data_output`).
+    pub binary_output: bool,
+}
+
+/// An inference response, whatever its transport.
+#[derive(Debug, Clone)]
+pub struct InferResponse {
+    pub model_name: String,
+    pub model_version: String,
+    pub id: Option<String>,
+    /// Each output with whether it goes out in binary form.
+    pub outputs: Vec<(OutputTensor, bool)>,
+}
+
+/// Runs one inference: tensors → frame → `Predictor::predict` (with the server's deadline) →
+/// tensors. Errors name the tensor they come from.
+pub async fn infer(state: &AppState, req: InferRequest) -> Result<InferResponse> {
+    let (model_name, model_version) = model(state, &req.model_name, req.model_version.as_deref())?;
+    tensors::check_requested(req.outputs.as_deref())?;
+    let (frame, image) = tensors::frame_from_inputs(req.inputs, req.id.clone())?;
+    let m = frame.persons.len();
+    let resp = state
+        .predictor
+        .answer(frame, image.map(|b| RawImages(vec![b])), state.request_timeout)
+        .await
+        .map_err(tensors::rename_error)?;
+    let all = tensors::outputs_from_response(&resp, m)?;
+    let outputs = tensors::select_outputs(all, req.outputs.as_deref(), req.binary_output)?;
+    Ok(InferResponse { model_name, model_version, id: req.id, outputs })
+}

@@ -1,0 +1,217 @@
+//! Admission before work. A frame is admitted (a ticket) before its body is read or parsed:
+//! at most `permits + max_waiting` frames are in the server at once, and one more is refused at
+//! once (429 with `Retry-After`), before reading, parsing or decoding it. An admitted frame's
+//! decode and pre-processing then start only with one of a few permits (about the number of
+//! cores), so concurrent requests do not all decode at once: CPU, threads and memory stay
+//! bounded at any concurrency.
+
+use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::Arc;
+
+use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+
+use posefuse_core::error::{Error, Result};
+
+/// The gate in front of pre-processing.
+pub struct Admission {
+    permits: Arc<Semaphore>,
+    total: usize,
+    waiting: AtomicUsize,
+    max_waiting: usize,
+    admitted: AtomicUsize,
+}
+
+/// A frame's place in the server, from before its body is read to its response.
+pub struct Ticket {
+    admission: Arc<Admission>,
+}
+
+impl Drop for Ticket {
+    fn drop(&mut self) {
+        let n = self.admission.admitted.fetch_sub(1, Ordering::AcqRel) - 1;
+        metrics::gauge!("posefuse_frames_admitted").set(n as f64);
+    }
+}
+
+/// Held while a frame is being decoded and pre-processed.
+pub struct Permit {
+    _permit: Option<OwnedSemaphorePermit>,
+    admission: Option<Arc<Admission>>,
+}
+
+impl Drop for Permit {
+    fn drop(&mut self) {
+        if let Some(a) = &self.admission {
+            a.publish();
+        }
+    }
+}
+
+impl Admission {
+    /// `permits` frames pre-processed at once (at least 1), `max_waiting` more may wait.
+    pub fn new(permits: usize, max_waiting: usize) -> Arc<Admission> {
+        let permits = permits.max(1);
+        Arc::new(Admission {
+            permits: Arc::new(Semaphore::new(permits)),
+            total: permits,
+            waiting: AtomicUsize::new(0),
+            max_waiting,
+            admitted: AtomicUsize::new(0),
+        })
+    }
+
+    /// No bound (command-line tools that run one frame at a time).
+    pub fn unbounded() -> Arc<Admission> {
+        Admission::new(Semaphore::MAX_PERMITS, usize::MAX / 2)
+    }
+
+    /// Admits one frame, or refuses it at once when `permits + max_waiting` frames are in.
+    pub fn admit(self: &Arc<Self>) -> Result<Ticket> {
+        let cap = self.total.saturating_add(self.max_waiting);
+        match self.admitted.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < cap).then_some(n + 1)) {
+            Ok(n) => {
+                metrics::gauge!("posefuse_frames_admitted").set((n + 1) as f64);
+                Ok(Ticket { admission: self.clone() })
+            }
+            Err(_) => {
+                metrics::counter!("posefuse_admission_refused_total").increment(1);
+                Err(Error::Overloaded)
+            }
+        }
+    }
+
+    /// Frames admitted now.
+    pub fn admitted(&self) -> usize {
+        self.admitted.load(Ordering::Relaxed)
+    }
+
+    /// Frames being pre-processed now.
+    pub fn active(&self) -> usize {
+        self.total - self.permits.available_permits()
+    }
+
+    /// Requests waiting for a permit now.
+    pub fn waiting(&self) -> usize {
+        self.waiting.load(Ordering::Relaxed)
+    }
+
+    fn publish(&self) {
+        metrics::gauge!("posefuse_preprocess_in_flight").set(self.active() as f64);
+        metrics::gauge!("posefuse_admission_waiting").set(self.waiting() as f64);
+    }
+
+    /// Takes a decode permit for an admitted frame, waiting for one if needed (admission
+    /// bounds how many wait). Dropping the future leaves the line.
+    pub async fn enter(self: &Arc<Self>, _admitted: &Ticket) -> Result<Permit> {
+        if let Ok(p) = self.permits.clone().try_acquire_owned() {
+            self.publish();
+            return Ok(Permit { _permit: Some(p), admission: Some(self.clone()) });
+        }
+        self.waiting.fetch_add(1, Ordering::AcqRel);
+        struct Leave<'a>(&'a Admission);
+        impl Drop for Leave<'_> {
+            fn drop(&mut self) {
+                self.0.waiting.fetch_sub(1, Ordering::AcqRel);
+                self.0.publish();
+            }
+        }
+        let leave = Leave(self);
+        self.publish();
+        let permit = self.permits.clone().acquire_owned().await.map_err(|_| Error::Unavailable("shutting down".into()));
+        drop(leave);
+        Ok(Permit { _permit: Some(permit?), admission: Some(self.clone()) })
+    }
+}
+
+/// Defaults chosen from the machine's cores (logged at start-up).
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Sizing {
+    pub cores: usize,
+    /// Inference worker threads.
+    pub workers: usize,
+    /// ONNX Runtime intra-op threads per session.
+    pub intra_threads: usize,
+    /// Frames decoded and pre-processed at once.
+    pub decode_permits: usize,
+    /// Requests that may wait for a decode permit.
+    pub admission_queue: usize,
+    /// Microseconds a worker waits to fill a batch.
+    pub batch_wait_us: u64,
+}
+
+impl Sizing {
+    /// Defaults for `cores` CPU cores: one inference worker per 4 cores (at least 1) with half
+    /// of its share of the cores as intra-op threads (the other half decodes), one decode permit
+    /// per core, a waiting line of 8 per permit, and a short batch wait on machines with more
+    /// than one worker.
+    pub fn for_cores(cores: usize) -> Sizing {
+        let cores = cores.max(1);
+        let workers = cores.div_ceil(4).max(1);
+        let intra_threads = (cores / workers / 2).clamp(1, 4);
+        Sizing {
+            cores,
+            workers,
+            intra_threads,
+            decode_permits: cores,
+            admission_queue: 8 * cores,
+            batch_wait_us: if workers > 1 { 200 } else { 0 },
+        }
+    }
+
+    /// Defaults for this machine: its cores as [`std::thread::available_parallelism`] counts
+    /// them. On Linux that is the CPU affinity mask capped by the cgroup's CPU quota (cgroup v2
+    /// `cpu.max`, or v1 `cpu.cfs_quota_us` over `cpu.cfs_period_us`), rounded down and at least
+    /// 1, so a container limited to 2 CPUs is sized for 2, one limited to 1.5 CPUs for 1, and one
+    /// without a CPU limit for every core of its node (docs/OPERATIONS.md, "Sizing").
+    pub fn detect() -> Sizing {
+        Sizing::for_cores(std::thread::available_parallelism().map_or(1, |n| n.get()))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::time::Duration;
+
+    #[tokio::test]
+    async fn a_full_line_is_refused_at_once_and_a_freed_permit_admits_the_next() {
+        let a = Admission::new(1, 1);
+        let (t1, t2) = (a.admit().unwrap(), a.admit().unwrap());
+        let t = std::time::Instant::now();
+        assert!(matches!(a.admit(), Err(Error::Overloaded)));
+        assert!(t.elapsed() < Duration::from_millis(50));
+        let first = a.enter(&t1).await.unwrap();
+        assert_eq!(a.active(), 1);
+        let a2 = a.clone();
+        let second = tokio::spawn(async move { a2.enter(&t2).await.map(|_| ()) });
+        while a.waiting() == 0 {
+            tokio::time::sleep(Duration::from_millis(1)).await;
+        }
+        drop(first);
+        second.await.unwrap().unwrap();
+        assert_eq!((a.active(), a.waiting(), a.admitted()), (0, 0, 1));
+        drop(t1);
+        assert!(a.admit().is_ok());
+    }
+
+    #[tokio::test]
+    async fn leaving_the_line_frees_its_place() {
+        let a = Admission::new(1, 1);
+        let (t1, t2) = (a.admit().unwrap(), a.admit().unwrap());
+        let _held = a.enter(&t1).await.unwrap();
+        let r = tokio::time::timeout(Duration::from_millis(20), a.enter(&t2)).await;
+        assert!(r.is_err(), "waits while the permit is held");
+        assert_eq!(a.waiting(), 0);
+        drop(t2);
+        assert_eq!(a.admitted(), 1);
+    }
+
+    #[test]
+    fn sizing_follows_the_cores() {
+        let two = Sizing::for_cores(2);
+        assert_eq!((two.workers, two.intra_threads, two.decode_permits), (1, 1, 2));
+        let sixteen = Sizing::for_cores(16);
+        assert_eq!((sixteen.workers, sixteen.intra_threads, sixteen.decode_permits), (4, 2, 16));
+        assert_eq!(Sizing::for_cores(0).cores, 1);
+    }
+}

@@ -1,0 +1,216 @@
+//! Cost limits checked before the expensive work: an image's size is read from its header and
+//! compared with the frame's declared size (and a pixel limit) before any pixel is decoded.
+
+use std::io::Cursor;
+
+use posefuse_core::error::{Error, Result};
+
+/// Largest image accepted, in pixels (the declared calibration size and the encoded header).
+pub const MAX_IMAGE_PIXELS: u64 = 64 * 1024 * 1024;
+
+/// Checks the declared image size against the pixel limit.
+pub fn check_declared_size(width: u32, height: u32) -> Result<()> {
+    if width > i32::MAX as u32 || height > i32::MAX as u32 {
+        return Err(Error::field("calibration.width/height", format!("{width}x{height} exceeds the int32 range")));
+    }
+    let pixels = width as u64 * height as u64;
+    if pixels > MAX_IMAGE_PIXELS {
+        return Err(Error::field(
+            "calibration.width/height",
+            format!("{width}x{height} is {pixels} pixels; at most {MAX_IMAGE_PIXELS}"),
+        ));
+    }
+    Ok(())
+}
+
+/// Cameras per frame (`cameras`). Each one a person uses is decoded, so with
+/// [`MAX_FRAME_PIXELS`] this bounds a frame's decoding.
+pub const MAX_CAMERAS: usize = 8;
+
+/// Declared pixels of all of a frame's cameras together: one image's limit, so that a frame of
+/// several cameras decodes no more than the largest single image may (they are decoded one after
+/// the other, but their crops are cut and held together).
+pub const MAX_FRAME_PIXELS: u64 = MAX_IMAGE_PIXELS;
+
+/// Checks every camera's declared size, and their sum, before anything is decoded.
+pub fn check_declared_sizes(frame: &posefuse_core::frame::Frame) -> Result<()> {
+    let mut total = 0u64;
+    for (_, at, c) in frame.camera_calibrations() {
+        check_declared_size(c.width, c.height).map_err(|e| e.within(&at))?;
+        total += c.width as u64 * c.height as u64;
+    }
+    if total > MAX_FRAME_PIXELS {
+        return Err(Error::field(
+            "cameras",
+            format!("the cameras' images are {total} pixels together; at most {MAX_FRAME_PIXELS} per frame"),
+        ));
+    }
+    Ok(())
+}
+
+/// Reads the encoded image's width and height from its header (no pixel decoding) and refuses a
+/// size that disagrees with the declared one. `Ok(false)`: the header is not readable (the
+/// caller reports the image as undecodable).
+pub fn check_image_header(bytes: &[u8], width: u32, height: u32) -> Result<bool> {
+    let reader = match image::ImageReader::new(Cursor::new(bytes)).with_guessed_format() {
+        Ok(r) => r,
+        Err(_) => return Ok(false),
+    };
+    let Ok((w, h)) = reader.into_dimensions() else { return Ok(false) };
+    if (w, h) != (width, height) {
+        return Err(Error::field(
+            "image",
+            format!("the image header says {w}x{h} but calibration.width/height say {width}x{height} (not decoded)"),
+        ));
+    }
+    Ok(true)
+}
+
+/// Per-frame limits on persons and LiDAR points (flags of `posefuse serve`). Each person scans
+/// every point of its frame, so their product bounds a frame's point work.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct FrameLimits {
+    pub max_persons: usize,
+    pub max_points: usize,
+}
+
+impl FrameLimits {
+    /// 256 persons; 1,000,000 points (a 32 MiB body holds about 2 million in the base64 form).
+    pub const DEFAULT: FrameLimits = FrameLimits { max_persons: super::MAX_PERSONS, max_points: 1_000_000 };
+}
+
+impl Default for FrameLimits {
+    fn default() -> Self {
+        FrameLimits::DEFAULT
+    }
+}
+
+impl FrameLimits {
+    /// Refuses a frame over a limit, naming the field, before its points are decoded.
+    pub fn check(&self, frame: &posefuse_core::frame::Frame) -> Result<()> {
+        if frame.cameras.len() > MAX_CAMERAS {
+            return Err(Error::field(
+                "cameras",
+                format!("{} cameras; at most {MAX_CAMERAS} per frame", frame.cameras.len()),
+            ));
+        }
+        if frame.persons.len() > self.max_persons {
+            return Err(Error::field(
+                "persons",
+                format!("{} persons; at most {} per frame", frame.persons.len(), self.max_persons),
+            ));
+        }
+        let points = match &frame.points {
+            posefuse_core::frame::Points::Flat(v) => v.len() / 3,
+            posefuse_core::frame::Points::Encoded { b64 } => b64.len() / 4 * 3 / 12,
+        };
+        if points > self.max_points {
+            return Err(Error::field("points", format!("{points} points; at most {} per frame", self.max_points)));
+        }
+        Ok(())
+    }
+}
+
+/// A frame's crops may read at most this many times the image's pixels in all: a crop's cost
+/// grows with its window (side²), so a few huge boxes or many large ones are refused before
+/// they are cropped.
+pub const CROP_BUDGET_IMAGES: f64 = 32.0;
+
+/// What the crops of one frame may still read.
+#[derive(Debug, Clone, Copy)]
+pub struct CropBudget {
+    left: f64,
+    total: f64,
+}
+
+impl CropBudget {
+    /// The budget of a `width`×`height` frame.
+    pub fn for_image(width: u32, height: u32) -> CropBudget {
+        let total = CROP_BUDGET_IMAGES * (width as f64 * height as f64).max(1.0);
+        CropBudget { left: total, total }
+    }
+
+    /// Takes a crop window of `side` pixels from the budget, or refuses the frame naming `field`.
+    pub fn spend(&mut self, side: f64, field: &str) -> Result<()> {
+        let cost = side * side;
+        if cost.is_nan() || cost > self.left {
+            return Err(Error::field(
+                field,
+                format!(
+                    "the crops of this frame up to here read {:.0} pixels, more than the limit of {:.0} \
+                     ({CROP_BUDGET_IMAGES} times the image): fewer or smaller 2D boxes",
+                    self.total - self.left + cost,
+                    self.total
+                ),
+            ));
+        }
+        self.left -= cost;
+        Ok(())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn png(w: u32, h: u32) -> Vec<u8> {
+        let mut out = Vec::new();
+        image::DynamicImage::new_rgb8(w, h).write_to(&mut Cursor::new(&mut out), image::ImageFormat::Png).unwrap();
+        out
+    }
+
+    #[test]
+    fn the_header_size_must_match_before_decoding() {
+        assert!(check_image_header(&png(8, 6), 8, 6).unwrap());
+        let e = check_image_header(&png(8, 6), 80, 60).unwrap_err();
+        assert_eq!(e.field_name(), Some("image"));
+        assert!(!check_image_header(b"not an image", 8, 6).unwrap());
+    }
+
+    #[test]
+    fn crops_share_one_budget_per_frame() {
+        let mut b = CropBudget::for_image(100, 100);
+        // 32 images of 100x100: 320,000 pixels, e.g. three 300-pixel windows and not a fourth.
+        for i in 0..3 {
+            b.spend(300.0, &format!("persons[{i}]")).unwrap();
+        }
+        let e = b.spend(300.0, "persons[3]").unwrap_err();
+        assert_eq!(e.field_name(), Some("persons[3]"));
+        assert!(CropBudget::for_image(100, 100).spend(f64::NAN, "p").is_err());
+    }
+
+    #[test]
+    fn declared_sizes_are_bounded() {
+        assert!(check_declared_size(1920, 1280).is_ok());
+        assert!(check_declared_size(13_000, 13_000).is_err());
+        assert!(check_declared_size(u32::MAX, 1).is_err());
+    }
+
+    fn frame_of_cameras(sizes: &[(u32, u32)]) -> posefuse_core::frame::Frame {
+        let cameras: Vec<serde_json::Value> = sizes
+            .iter()
+            .enumerate()
+            .map(|(i, (w, h))| {
+                serde_json::json!({"name": format!("c{i}"), "image": "", "calibration": {
+                    "intrinsic": [100.0, 100.0, 50.0, 40.0, 0, 0, 0, 0, 0],
+                    "extrinsic": [1,0,0,0, 0,1,0,0, 0,0,1,0, 0,0,0,1], "width": w, "height": h}})
+            })
+            .collect();
+        serde_json::from_value(serde_json::json!({"cameras": cameras, "points": [], "persons": []})).unwrap()
+    }
+
+    #[test]
+    fn several_cameras_share_one_pixel_limit_and_are_counted() {
+        // 5 cameras of 4096x3072 (12.6 Mpx each) fit in 64 Mi pixels, 6 do not
+        assert!(check_declared_sizes(&frame_of_cameras(&[(4096, 3072); 5])).is_ok());
+        let e = check_declared_sizes(&frame_of_cameras(&[(4096, 3072); 6])).unwrap_err();
+        assert_eq!(e.field_name(), Some("cameras"));
+        // one camera over the single-image limit is named
+        let e = check_declared_sizes(&frame_of_cameras(&[(640, 480), (13_000, 13_000)])).unwrap_err();
+        assert_eq!(e.field_name(), Some("cameras[1].calibration.width/height"));
+        let limits = FrameLimits::DEFAULT;
+        assert!(limits.check(&frame_of_cameras(&[(64, 48); MAX_CAMERAS])).is_ok());
+        let e = limits.check(&frame_of_cameras(&[(64, 48); MAX_CAMERAS + 1])).unwrap_err();
+        assert_eq!(e.field_name(), Some("cameras"));
+    }
+}

@@ -1,0 +1,585 @@
+//! `posefuse bench`: load a server with simulator request fixtures at several concurrencies and
+//! set the numbers beside the raw ONNX Runtime ceiling on the same persons.
+//!
+//! Per concurrency step: frames/s and persons/s answered, p50 and p99 of the answered requests,
+//! the count of every status, and the server's peak resident memory (VmRSS of `/proc/PID/status`
+//! sampled every 10 ms; VmHWM, the lifetime peak, at the end). The raw ceiling runs the camera and
+//! point-fusion sessions of the same bundle directly, on the model inputs of the same persons:
+//! per frame (its persons in one batch, one thread) and for throughput (batches of `max_batch`
+//! on `workers` threads, each session with `intra_threads`), i.e. the server's thread settings.
+
+use std::path::PathBuf;
+use std::process::{Child, Command, Stdio};
+use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use anyhow::{anyhow, bail, Context};
+use base64::Engine;
+
+use posefuse_core::frame::{Frame, RgbPixels};
+use posefuse_core::geometry::Camera;
+use posefuse_core::image_decode::{self, CameraImage};
+use posefuse_core::keypoints::K;
+use posefuse_core::pipeline::{fused_points, normalize, prepare_person, smoothed_features, CropTransform};
+use posefuse_serve::runtime::RuntimeConfig;
+use posefuse_serve::runtime::{env, Bundle, ModelKind, Models};
+use posefuse_serve::server::grpc::proto;
+
+/// How the bench sends each frame's camera image.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+pub enum ImageForm {
+    /// The fixture's JPEG as written by the simulator.
+    AsIs,
+    /// Re-encoded as JPEG, quality 92, chroma subsampled 4:2:0 (what most cameras write).
+    Jpeg420,
+    /// Re-encoded as JPEG, quality 92, no chroma subsampling (4:4:4).
+    Jpeg444,
+    /// Decoded RGB8 pixels (`image_rgb`).
+    Rgb,
+}
+
+/// Transport of the requests.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
+pub enum Protocol {
+    /// `POST /v1/poses` with a JSON body.
+    Http,
+    /// gRPC `Predict` (image and pixels as bytes).
+    Grpc,
+}
+
+/// Arguments of `posefuse bench`.
+/// What `posefuse bench` runs (the command line's flags, as plain values).
+#[derive(Debug, Clone)]
+pub struct BenchOptions {
+    /// Server to load (HTTP base URL; gRPC on the same port). Absent: start `posefuse serve` on a
+    /// free local port with the runtime flags below, and measure it.
+    pub url: Option<String>,
+    /// Process id of the server behind --url, for its memory.
+    pub server_pid: Option<u32>,
+    /// Simulator output directory: its `requests/*.json` fixtures are sent.
+    pub data: PathBuf,
+    /// Concurrent clients, one step each (comma-separated).
+    pub concurrency: Vec<usize>,
+    /// Seconds of load per step.
+    pub duration: f64,
+    /// Image forms to send, one table block each (comma-separated).
+    pub image: Vec<ImageForm>,
+    /// Transport.
+    pub protocol: Protocol,
+    /// Fixtures used (the first N frames, in file-name order).
+    pub frames: usize,
+    /// Seconds after which a request counts as hung (status `timeout`).
+    pub timeout: f64,
+    /// Skip the raw ONNX Runtime ceiling.
+    pub no_raw: bool,
+    /// The bundle: of the server this starts, and of the raw ceiling.
+    pub model_dir: PathBuf,
+    /// Thread settings: of the server this starts, and of the raw ceiling.
+    pub runtime: RuntimeConfig,
+    /// Further `posefuse serve` flags of the server this starts (its heading stage and
+    /// refinement); the raw ceiling runs the bundle alone.
+    pub serve_args: Vec<String>,
+}
+
+/// One fixture prepared for sending.
+struct Prepared {
+    http_body: Vec<u8>,
+    grpc: proto::PredictRequest,
+    persons: usize,
+}
+
+fn b64(bytes: &[u8]) -> String {
+    base64::engine::general_purpose::STANDARD.encode(bytes)
+}
+
+fn fixture_image(frame: &Frame) -> anyhow::Result<image::RgbImage> {
+    let text = frame.image.as_ref().ok_or_else(|| anyhow!("a fixture without an image"))?;
+    let bytes = base64::engine::general_purpose::STANDARD.decode(text)?;
+    Ok(image::load_from_memory(&bytes)?.into_rgb8())
+}
+
+fn encode_jpeg(img: &image::RgbImage, sampling: jpeg_encoder::SamplingFactor) -> anyhow::Result<Vec<u8>> {
+    let mut out = Vec::new();
+    let mut enc = jpeg_encoder::Encoder::new(&mut out, posefuse_core::sample::JPEG_QUALITY);
+    enc.set_sampling_factor(sampling);
+    let (w, h) = (u16::try_from(img.width())?, u16::try_from(img.height())?);
+    enc.encode(img.as_raw(), w, h, jpeg_encoder::ColorType::Rgb)?;
+    Ok(out)
+}
+
+/// The frame as sent in `form`: the JSON frame (with `image` or `image_rgb`) and its gRPC twin.
+fn prepare(frame: &Frame, form: ImageForm) -> anyhow::Result<Prepared> {
+    let mut f = frame.clone();
+    for p in &mut f.persons {
+        p.ground_truth = None;
+    }
+    let file_bytes = |f: &Frame| -> anyhow::Result<Vec<u8>> {
+        Ok(base64::engine::general_purpose::STANDARD.decode(f.image.as_deref().unwrap_or_default())?)
+    };
+    let (image, pixels) = match form {
+        ImageForm::AsIs => (file_bytes(&f)?, None),
+        ImageForm::Jpeg420 => (encode_jpeg(&fixture_image(&f)?, jpeg_encoder::SamplingFactor::R_4_2_0)?, None),
+        ImageForm::Jpeg444 => (encode_jpeg(&fixture_image(&f)?, jpeg_encoder::SamplingFactor::R_4_4_4)?, None),
+        ImageForm::Rgb => {
+            let img = fixture_image(&f)?;
+            (Vec::new(), Some(RgbPixels { width: img.width(), height: img.height(), pixels: img.into_raw() }))
+        }
+    };
+    f.image = (!image.is_empty()).then(|| b64(&image));
+    f.image_rgb = pixels;
+    let http_body = serde_json::to_vec(&f)?;
+    // the image as file bytes (the pixels travel in `f.image_rgb`)
+    let grpc = posefuse_serve::server::grpc::frame_to_proto(&f, image)?;
+    Ok(Prepared { http_body, grpc, persons: f.persons.len() })
+}
+
+/// Resident memory of a process, from `/proc/PID/status` (kB lines `VmRSS`, `VmHWM`).
+fn proc_kb(pid: u32, key: &str) -> Option<u64> {
+    let text = std::fs::read_to_string(format!("/proc/{pid}/status")).ok()?;
+    let line = text.lines().find(|l| l.starts_with(key))?;
+    line.split_whitespace().nth(1)?.parse().ok()
+}
+
+/// Samples VmRSS every 10 ms until stopped; the peak in kB.
+struct RssSampler {
+    stop: Arc<AtomicBool>,
+    peak: Arc<AtomicU64>,
+    thread: Option<std::thread::JoinHandle<()>>,
+}
+
+impl RssSampler {
+    fn start(pid: Option<u32>) -> RssSampler {
+        let (stop, peak) = (Arc::new(AtomicBool::new(false)), Arc::new(AtomicU64::new(0)));
+        let thread = pid.map(|pid| {
+            let (stop, peak) = (stop.clone(), peak.clone());
+            std::thread::spawn(move || {
+                while !stop.load(Ordering::Relaxed) {
+                    if let Some(kb) = proc_kb(pid, "VmRSS:") {
+                        peak.fetch_max(kb, Ordering::Relaxed);
+                    }
+                    std::thread::sleep(Duration::from_millis(10));
+                }
+            })
+        });
+        RssSampler { stop, peak, thread }
+    }
+
+    fn finish(mut self) -> Option<u64> {
+        self.stop.store(true, Ordering::Relaxed);
+        let t = self.thread.take()?;
+        t.join().ok()?;
+        Some(self.peak.load(Ordering::Relaxed))
+    }
+}
+
+/// What one concurrency step measured.
+struct Step {
+    clients: usize,
+    wall: Duration,
+    latencies: Vec<Duration>,
+    persons: usize,
+    statuses: std::collections::BTreeMap<String, usize>,
+    peak_rss_kb: Option<u64>,
+}
+
+fn percentile(sorted: &[Duration], p: f64) -> Duration {
+    if sorted.is_empty() {
+        return Duration::ZERO;
+    }
+    sorted[((sorted.len() as f64 - 1.0) * p).round() as usize]
+}
+
+fn ms(d: Duration) -> f64 {
+    d.as_secs_f64() * 1e3
+}
+
+/// How long a refused client waits before its next request when the answer names no time
+/// (gRPC's `RESOURCE_EXHAUSTED`): the server's `Retry-After` on HTTP.
+const RETRY_AFTER_DEFAULT: Duration = Duration::from_secs(1);
+
+/// One request: the status label ("200", "429", gRPC code names, "timeout", "error"), and the
+/// back-off the server asked for when it refused the request.
+async fn send(
+    protocol: Protocol,
+    http: &reqwest::Client,
+    grpc: &mut Option<proto::posefuse_client::PosefuseClient<tonic::transport::Channel>>,
+    url: &str,
+    p: &Prepared,
+    timeout: Duration,
+) -> (String, Option<Duration>) {
+    match protocol {
+        Protocol::Http => {
+            let req = http
+                .post(format!("{url}/v1/poses"))
+                .header("content-type", "application/json")
+                .body(p.http_body.clone())
+                .timeout(timeout);
+            match req.send().await {
+                Ok(r) => {
+                    let status = r.status();
+                    let retry = (status == reqwest::StatusCode::TOO_MANY_REQUESTS).then(|| retry_after(r.headers()));
+                    match r.bytes().await {
+                        Ok(_) => (status.as_u16().to_string(), retry),
+                        Err(e) if e.is_timeout() => ("timeout".into(), None),
+                        Err(_) => ("error".into(), None),
+                    }
+                }
+                Err(e) if e.is_timeout() => ("timeout".into(), None),
+                Err(_) => ("error".into(), None),
+            }
+        }
+        Protocol::Grpc => {
+            let Some(client) = grpc.as_mut() else { return ("error".into(), None) };
+            match tokio::time::timeout(timeout, client.predict(p.grpc.clone())).await {
+                Ok(Ok(_)) => ("200".into(), None),
+                Ok(Err(s)) => {
+                    let retry = (s.code() == tonic::Code::ResourceExhausted).then_some(RETRY_AFTER_DEFAULT);
+                    (format!("{:?}", s.code()), retry)
+                }
+                Err(_) => ("timeout".into(), None),
+            }
+        }
+    }
+}
+
+/// The `Retry-After` of a 429 in seconds (the server sends whole seconds).
+fn retry_after(headers: &reqwest::header::HeaderMap) -> Duration {
+    headers
+        .get(reqwest::header::RETRY_AFTER)
+        .and_then(|v| v.to_str().ok()?.trim().parse::<u64>().ok())
+        .map_or(RETRY_AFTER_DEFAULT, Duration::from_secs)
+}
+
+/// How one step loads the server.
+#[derive(Clone, Copy)]
+struct Load {
+    protocol: Protocol,
+    clients: usize,
+    duration: Duration,
+    timeout: Duration,
+}
+
+async fn run_step(load: Load, url: &str, pid: Option<u32>, frames: Arc<Vec<Prepared>>) -> anyhow::Result<Step> {
+    let Load { protocol, clients, duration, timeout } = load;
+    let sampler = RssSampler::start(pid);
+    let started = Instant::now();
+    let mut tasks = Vec::with_capacity(clients);
+    for c in 0..clients {
+        let (frames, url) = (frames.clone(), url.to_string());
+        let mut grpc = match protocol {
+            Protocol::Grpc => Some(
+                proto::posefuse_client::PosefuseClient::connect(url.clone())
+                    .await?
+                    .max_decoding_message_size(64 << 20)
+                    .max_encoding_message_size(64 << 20),
+            ),
+            Protocol::Http => None,
+        };
+        tasks.push(tokio::spawn(async move {
+            let http = reqwest::Client::new();
+            let mut out: Vec<(Duration, String, usize)> = Vec::new();
+            let mut i = c * 7;
+            while started.elapsed() < duration {
+                let p = &frames[i % frames.len()];
+                let t = Instant::now();
+                let (status, retry) = send(protocol, &http, &mut grpc, &url, p, timeout).await;
+                out.push((t.elapsed(), status, p.persons));
+                i += 1;
+                // A refused client waits as the server asked, as well-behaved clients do; without
+                // it a full server is measured against a retry storm on the same cores.
+                if let Some(wait) = retry {
+                    let left = duration.saturating_sub(started.elapsed());
+                    tokio::time::sleep(wait.min(left)).await;
+                }
+            }
+            out
+        }));
+    }
+    let mut step = Step {
+        clients,
+        wall: Duration::ZERO,
+        latencies: Vec::new(),
+        persons: 0,
+        statuses: Default::default(),
+        peak_rss_kb: None,
+    };
+    for t in tasks {
+        for (d, status, persons) in t.await? {
+            if status == "200" {
+                step.latencies.push(d);
+                step.persons += persons;
+            }
+            *step.statuses.entry(status).or_default() += 1;
+        }
+    }
+    step.wall = started.elapsed();
+    step.peak_rss_kb = sampler.finish();
+    step.latencies.sort();
+    Ok(step)
+}
+
+/// The raw ONNX Runtime numbers on the persons of `frames`.
+struct Raw {
+    /// Per frame: camera + point fusion on the frame's persons as one batch.
+    frame_p50: Duration,
+    /// Persons per second, batches of `max_batch` on `workers` threads.
+    persons_per_s: f64,
+}
+
+/// One person's camera input `[3, S, S]` and point-fusion input `[N, 3 + K]`.
+type PersonInputs = (Vec<f32>, Vec<f32>);
+
+/// Camera inputs and fusion inputs of every person of `frames` that has both, made with the
+/// server's own pipeline calls (planned decode, crop, normalize, point input, fusion features).
+fn raw_inputs(models: &mut Models, bundle: &Bundle, frames: &[Frame]) -> anyhow::Result<Vec<Vec<PersonInputs>>> {
+    let cfg = bundle.config();
+    let h = cfg.heatmap_size as usize;
+    let mut out = Vec::new();
+    for frame in frames {
+        let calibration =
+            frame.calibration.as_ref().ok_or_else(|| anyhow::anyhow!("a single-camera frame is needed"))?;
+        let camera = Camera::from_calibration(calibration)?;
+        let points = frame.points.decode()?;
+        let prepared: Vec<_> = frame
+            .persons
+            .iter()
+            .map(|p| prepare_person(None, Some(&camera), &points, &p.box_3d, p.box_2d.as_ref(), cfg))
+            .collect();
+        let windows: Vec<CropTransform> = prepared.iter().filter_map(|p| p.crop).collect();
+        let image = image_decode::open(frame, None, None)?;
+        if !matches!(image, CameraImage::Jpeg(_) | CameraImage::Png(_)) {
+            bail!("a fixture without a usable image");
+        }
+        let cut = image_decode::decode_crops(image, &windows, camera.width, camera.height, || Ok(()))?
+            .map_err(|e| anyhow!(e))?;
+        let mut persons = Vec::new();
+        let mut cut = cut.into_iter();
+        for p in prepared {
+            let Some(_) = p.crop else { continue };
+            let crop = cut.next().ok_or_else(|| anyhow!("one crop per window"))?;
+            let Some(input) = p.input else { continue };
+            let x = normalize(&crop, cfg);
+            let hm = models.run(ModelKind::Camera, 1, &x)?;
+            let fused = fused_points(&input.xyz, &smoothed_features(&hm, K, h, h, &input.uv, cfg), K);
+            persons.push((x, fused));
+        }
+        out.push(persons);
+    }
+    Ok(out)
+}
+
+fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> anyhow::Result<Raw> {
+    let rt = &args.runtime;
+    let bundle = Bundle::load(&args.model_dir)?;
+    let ort_env = env::environment(&env::resolve_lib(rt.ort_lib.as_deref()))?;
+    let mut models = Models::load(&ort_env, &bundle, rt.intra_threads)?;
+    let inputs = raw_inputs(&mut models, &bundle, frames)?;
+    let batch_of = |persons: &[&(Vec<f32>, Vec<f32>)]| {
+        let cam: Vec<f32> = persons.iter().flat_map(|p| p.0.iter().copied()).collect();
+        let fus: Vec<f32> = persons.iter().flat_map(|p| p.1.iter().copied()).collect();
+        (cam, fus)
+    };
+    // per frame, a few rounds
+    let mut per_frame = Vec::new();
+    for round in 0..4 {
+        for persons in &inputs {
+            if persons.is_empty() {
+                continue;
+            }
+            let refs: Vec<&(Vec<f32>, Vec<f32>)> = persons.iter().collect();
+            let (cam, fus) = batch_of(&refs);
+            let t = Instant::now();
+            models.run(ModelKind::Camera, refs.len(), &cam)?;
+            models.run(ModelKind::PointFusion, refs.len(), &fus)?;
+            if round > 0 {
+                per_frame.push(t.elapsed());
+            }
+        }
+    }
+    per_frame.sort();
+    // throughput: every worker thread with its own sessions, batches of max_batch
+    let all: Arc<Vec<(Vec<f32>, Vec<f32>)>> = Arc::new(inputs.into_iter().flatten().collect());
+    if all.is_empty() {
+        bail!("no person of the fixtures has both a crop and LiDAR points");
+    }
+    let b = rt.max_batch.max(1);
+    let secs = args.duration.min(10.0);
+    let done = Arc::new(AtomicU64::new(0));
+    let mut sessions = vec![models];
+    for _ in 1..rt.workers.max(1) {
+        sessions.push(Models::load(&ort_env, &bundle, rt.intra_threads)?);
+    }
+    let started = Instant::now();
+    let mut threads = Vec::new();
+    for (w, mut m) in sessions.into_iter().enumerate() {
+        let (all, done) = (all.clone(), done.clone());
+        threads.push(std::thread::spawn(move || -> anyhow::Result<()> {
+            let mut i = w * 13;
+            while started.elapsed().as_secs_f64() < secs {
+                let refs: Vec<&(Vec<f32>, Vec<f32>)> = (0..b).map(|k| &all[(i + k) % all.len()]).collect();
+                let cam: Vec<f32> = refs.iter().flat_map(|p| p.0.iter().copied()).collect();
+                let fus: Vec<f32> = refs.iter().flat_map(|p| p.1.iter().copied()).collect();
+                m.run(ModelKind::Camera, b, &cam)?;
+                m.run(ModelKind::PointFusion, b, &fus)?;
+                done.fetch_add(b as u64, Ordering::Relaxed);
+                i += b;
+            }
+            Ok(())
+        }));
+    }
+    for t in threads {
+        t.join().map_err(|_| anyhow!("raw ONNX Runtime thread panicked"))??;
+    }
+    let persons_per_s = done.load(Ordering::Relaxed) as f64 / started.elapsed().as_secs_f64();
+    Ok(Raw { frame_p50: percentile(&per_frame, 0.5), persons_per_s })
+}
+
+/// A `posefuse serve` child on a free loopback port.
+struct Spawned {
+    child: Child,
+    url: String,
+}
+
+impl Drop for Spawned {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+fn spawn_server(args: &BenchOptions) -> anyhow::Result<Spawned> {
+    let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
+    let r = &args.runtime;
+    let mut cmd = Command::new(std::env::current_exe()?);
+    cmd.arg("serve")
+        .arg("--addr")
+        .arg(format!("127.0.0.1:{port}"))
+        .arg("--model-dir")
+        .arg(&args.model_dir)
+        .args(["--workers", &r.workers.to_string(), "--intra-threads", &r.intra_threads.to_string()])
+        .args(["--max-batch", &r.max_batch.to_string()])
+        .args(["--batch-wait-us", &r.batch_wait.as_micros().to_string()])
+        .args(["--queue-size", &r.queue_size.to_string()])
+        .args(&args.serve_args)
+        .stdout(Stdio::null())
+        .stderr(Stdio::null());
+    if let Some(lib) = &r.ort_lib {
+        cmd.arg("--ort-lib").arg(lib);
+    }
+    let child = cmd.spawn().context("starting posefuse serve")?;
+    Ok(Spawned { child, url: format!("http://127.0.0.1:{port}") })
+}
+
+async fn wait_ready(url: &str) -> anyhow::Result<()> {
+    let client = reqwest::Client::new();
+    let deadline = Instant::now() + Duration::from_secs(120);
+    while Instant::now() < deadline {
+        if let Ok(r) = client.get(format!("{url}/readyz")).send().await {
+            if r.status().is_success() {
+                return Ok(());
+            }
+        }
+        tokio::time::sleep(Duration::from_millis(200)).await;
+    }
+    bail!("{url} did not become ready within 120 s")
+}
+
+/// Runs `posefuse bench`.
+pub fn run_bench(args: BenchOptions) -> anyhow::Result<()> {
+    let mut frames: Vec<Frame> = posefuse_serve::eval::load_fixtures(&args.data)?.into_iter().map(|(_, f)| f).collect();
+    frames.truncate(args.frames.max(1));
+    let persons: usize = frames.iter().map(|f| f.persons.len()).sum();
+    println!(
+        "fixtures: {} frames, {} persons ({:.2} per frame) from {}",
+        frames.len(),
+        persons,
+        persons as f64 / frames.len() as f64,
+        args.data.display()
+    );
+    let r = &args.runtime;
+    println!(
+        "runtime: bundle {} | workers {} | intra-op threads {} | max batch {} | protocol {:?} | {} s per step",
+        args.model_dir.display(),
+        r.workers,
+        r.intra_threads,
+        r.max_batch,
+        args.protocol,
+        args.duration
+    );
+    let raw = if args.no_raw { None } else { Some(raw_ceiling(&args, &frames)?) };
+    if let Some(raw) = &raw {
+        println!(
+            "raw ONNX Runtime (camera + point fusion): per frame p50 {:.3} ms | ceiling {:.0} persons/s",
+            ms(raw.frame_p50),
+            raw.persons_per_s
+        );
+    }
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
+    let spawned = if args.url.is_none() { Some(spawn_server(&args)?) } else { None };
+    let url = args.url.clone().or_else(|| spawned.as_ref().map(|s| s.url.clone())).unwrap_or_default();
+    let url = url.trim_end_matches('/').to_string();
+    let pid = args.server_pid.or_else(|| spawned.as_ref().map(|s| s.child.id()));
+    rt.block_on(wait_ready(&url))?;
+    println!();
+    println!("| image | clients | frames/s | persons/s | p50 ms | p99 ms | p50 / raw | persons/s / raw | statuses | peak RSS MB |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for &form in &args.image {
+        let prepared: Vec<Prepared> = frames.iter().map(|f| prepare(f, form)).collect::<anyhow::Result<_>>()?;
+        let prepared = Arc::new(prepared);
+        let load = Load {
+            protocol: args.protocol,
+            clients: 1,
+            duration: Duration::from_secs_f64(args.duration),
+            timeout: Duration::from_secs_f64(args.timeout),
+        };
+        // warm-up, one client for a second (at most one step's duration)
+        let warm = Duration::from_secs_f64(args.duration.min(1.0));
+        rt.block_on(run_step(Load { duration: warm, ..load }, &url, None, prepared.clone()))?;
+        for &clients in &args.concurrency {
+            let s = rt.block_on(run_step(Load { clients: clients.max(1), ..load }, &url, pid, prepared.clone()))?;
+            if s.latencies.is_empty() {
+                bail!("{form:?} at {clients} clients: no request was answered with 200 ({:?})", s.statuses);
+            }
+            let secs = s.wall.as_secs_f64();
+            let (p50, p99) = (percentile(&s.latencies, 0.5), percentile(&s.latencies, 0.99));
+            let statuses: Vec<String> = s.statuses.iter().map(|(k, v)| format!("{k}: {v}")).collect();
+            let ratio = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.2}"));
+            println!(
+                "| {form:?} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {} | {} | {} | {} |",
+                s.clients,
+                s.latencies.len() as f64 / secs,
+                s.persons as f64 / secs,
+                ms(p50),
+                ms(p99),
+                ratio(raw.as_ref().map(|r| ms(p50) / ms(r.frame_p50))),
+                ratio(raw.as_ref().map(|r| s.persons as f64 / secs / r.persons_per_s)),
+                statuses.join(", "),
+                s.peak_rss_kb.map_or("–".to_string(), |kb| format!("{:.0}", kb as f64 / 1024.0)),
+            );
+        }
+    }
+    if let Some(hwm) = pid.and_then(|p| proc_kb(p, "VmHWM:")) {
+        println!("\nserver VmHWM (lifetime peak RSS): {:.0} MB", hwm as f64 / 1024.0);
+    }
+    drop(spawned);
+    Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_refused_client_waits_the_servers_retry_after() {
+        let mut h = reqwest::header::HeaderMap::new();
+        assert_eq!(retry_after(&h), RETRY_AFTER_DEFAULT);
+        h.insert(reqwest::header::RETRY_AFTER, " 3".parse().unwrap());
+        assert_eq!(retry_after(&h), Duration::from_secs(3));
+        // an HTTP date or garbage: the default
+        h.insert(reqwest::header::RETRY_AFTER, "Wed, 21 Oct 2026 07:28:00 GMT".parse().unwrap());
+        assert_eq!(retry_after(&h), RETRY_AFTER_DEFAULT);
+    }
+}
