@@ -9,21 +9,24 @@ export ORT_DYLIB_PATH="${ORT_DYLIB_PATH:-$PWD/.ort/lib/libonnxruntime.so}"
 
 echo "== rustfmt / clippy"
 cargo fmt --all -- --check
-cargo clippy --all-targets --locked -- -D warnings
+cargo clippy --workspace --all-targets --locked -- -D warnings
 
 echo "== ruff"
-.venv/bin/ruff check models-export clients/python deploy scripts examples fuzz tests/ros_logs
+.venv/bin/ruff check models-export clients/python deploy scripts examples fuzz tests/ros_logs tests/ci
 
 echo "== Rust tests"
-cargo test --locked --all-targets
+cargo test --workspace --locked --all-targets
 
 echo "== Python tests"
-# The trainer's tests, then the Python client's (end to end against target/debug/posefuse, built
-# above) and the deploy/ manifests' (two pytest runs: the trainer's tests import their conftest by
-# name); -rs prints the reason of any skip. tests/ros_logs reads the ROS 2 logs posefuse writes with
-# the official MCAP, ROS 2 and Foxglove readers.
-.venv/bin/python -m pytest -q -rs models-export
-.venv/bin/python -m pytest -q -rs clients/python deploy tests/ros_logs
+# The trainer's tests, then the Python client's (end to end against this checkout's posefuse, which
+# clients/python/tests/live_server.py has cargo build: after the Rust tests, only a check) and the
+# deploy/ manifests' (two pytest runs: the trainer's tests import their conftest by name); -rs
+# prints the reason of any skip, and under CI=true a skip not in .ci/allowed-skips fails the run
+# (scripts/pytest_ci_skips.py). tests/ros_logs reads the ROS 2 logs posefuse writes with the
+# official MCAP, ROS 2 and Foxglove readers.
+export PYTHONPATH="$PWD/scripts${PYTHONPATH:+:$PYTHONPATH}"
+.venv/bin/python -m pytest -q -rs -p pytest_ci_skips models-export
+.venv/bin/python -m pytest -q -rs -p pytest_ci_skips clients/python deploy tests/ros_logs tests/ci
 
 echo "== container"
 bash scripts/container-ci.sh

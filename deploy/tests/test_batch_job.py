@@ -145,7 +145,7 @@ def test_the_jobs_pods_score_every_segment_once(tmp_path):
     reason = live_server.missing_reason()
     if reason:
         pytest.skip(f"no posefuse binary: {reason}")
-    binary = os.environ.get("POSEFUSE_BIN", str(ROOT / "target/debug/posefuse"))
+    binary = str(live_server.binary())
     job, c = job_container()
     count = job["spec"]["completions"]
     data = tmp_path / "claim"

@@ -8,6 +8,7 @@ from __future__ import annotations
 import os
 import socket
 import subprocess
+import sys
 import time
 from pathlib import Path
 
@@ -24,7 +25,8 @@ from schemathesis.checks import (  # noqa: E402
 )
 
 ROOT = Path(__file__).resolve().parents[2]
-BIN = ROOT / "target" / "debug" / "posefuse"
+sys.path.insert(0, str(ROOT / "clients" / "python" / "tests"))
+import live_server  # noqa: E402
 
 
 def _free_port() -> int:
@@ -44,13 +46,14 @@ def _ready(port: int) -> bool:
 
 @pytest.fixture(scope="module")
 def server_url():
-    if not BIN.exists():
-        pytest.skip(f"{BIN} is missing: build it with `cargo build` to check the API contract")
+    if reason := live_server.missing_reason():
+        pytest.skip(reason)
     port = _free_port()
     env = {**os.environ}
     env.setdefault("ORT_DYLIB_PATH", str(ROOT / ".ort" / "lib" / "libonnxruntime.so"))
     proc = subprocess.Popen(
-        [str(BIN), "serve", "--addr", f"127.0.0.1:{port}", "--model-dir", str(ROOT / "models" / "default")],
+        [str(live_server.binary()), "serve", "--addr", f"127.0.0.1:{port}",
+         "--model-dir", str(ROOT / "models" / "default")],
         env=env,
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,

@@ -24,15 +24,16 @@ import numpy as np
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-BINARY = ROOT / "target" / "debug" / "posefuse"
+sys.path.insert(0, str(ROOT / "clients" / "python" / "tests"))
+import live_server  # noqa: E402
+
 MODEL_DIR = ROOT / "models" / "default"
 MANIFEST = json.loads((MODEL_DIR / "manifest.json").read_text())
 MODEL = MANIFEST["name"]
 
-if not BINARY.is_file():
-    if os.environ.get("CI") == "true":
-        raise RuntimeError(f"{BINARY} is not built: CI builds it before the Python tests")
-    pytest.skip(f"{BINARY} is not built (run `cargo build`)", allow_module_level=True)
+if reason := live_server.missing_reason():
+    pytest.skip(reason, allow_module_level=True)
+BINARY = live_server.binary()
 
 import tritonclient.grpc as grpcclient  # noqa: E402
 import tritonclient.http as httpclient  # noqa: E402

@@ -4,8 +4,8 @@ posefuse_train fit` (the cpu recipe, a few steps) -> the bundle served by `posef
 `posefuse waymo score --server` + `posefuse waymo eval`, and `posefuse eval` on the converted
 fixtures. Both evaluations score the same 12 persons with the same bundle and must agree.
 
-Needs the debug binary (`cargo build`, which the Rust tests build first); skipped without it,
-except under CI=true, where a missing binary fails.
+Needs this checkout's binary (`live_server.binary()` builds it); skipped with the reason without
+it, which under CI=true fails the run.
 """
 
 from __future__ import annotations
@@ -21,12 +21,12 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-BINARY = ROOT / "target" / "debug" / "posefuse"
+sys.path.insert(0, str(ROOT / "clients" / "python" / "tests"))
+import live_server  # noqa: E402
 
-if not BINARY.is_file():
-    if os.environ.get("CI") == "true":
-        raise RuntimeError(f"{BINARY} is not built: CI builds it before the Python tests")
-    pytest.skip(f"{BINARY} is not built (run `cargo build`)", allow_module_level=True)
+if reason := live_server.missing_reason():
+    pytest.skip(reason, allow_module_level=True)
+BINARY = live_server.binary()
 
 TINY_SEGMENT = (
     "--segments 1 --frames 6 --top-rows 48 --top-cols 1200 --short-rows 24 --short-cols 80 "

@@ -12,6 +12,7 @@ import os
 import shutil
 import socket
 import subprocess
+import sys
 import time
 import urllib.error
 import urllib.request
@@ -21,7 +22,9 @@ import pytest
 
 REPO = Path(__file__).resolve().parents[2]
 EXAMPLE = REPO / "examples" / "frame.json"
-SERVER = REPO / "target" / "debug" / "posefuse"
+sys.path.insert(0, str(REPO / "clients" / "python" / "tests"))
+import live_server  # noqa: E402
+
 CHROMIUM_FLAGS = [
     "--headless",
     "--no-sandbox",
@@ -65,15 +68,15 @@ def _post(url: str, body: bytes) -> tuple[int, dict]:
 @pytest.fixture(scope="module")
 def server():
     """Base URL of a `posefuse serve` on the default bundle, on a free loopback port."""
-    if not SERVER.is_file():
-        pytest.skip(f"no built server at {SERVER} (cargo build)")
+    if reason := live_server.missing_reason():
+        pytest.skip(reason)
     if not _ort_lib().is_file():
         pytest.skip(f"no ONNX Runtime library at {_ort_lib()} (scripts/setup.sh)")
     port = _free_port()
     env = dict(os.environ, ORT_DYLIB_PATH=str(_ort_lib()), RUST_LOG="warn")
     proc = subprocess.Popen(
         [
-            str(SERVER),
+            str(live_server.binary()),
             "serve",
             "--addr",
             f"127.0.0.1:{port}",

