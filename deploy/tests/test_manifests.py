@@ -173,13 +173,18 @@ def dockerfile() -> dict:
     }
 
 
+def rust_sources() -> list[Path]:
+    """The Rust sources of the binary (src/) and of the workspace's crates (crates/)."""
+    return [p for d in ("src", "crates") for p in ROOT.joinpath(d).rglob("*.rs")]
+
+
 def server_flags() -> set[str]:
     """Every environment variable the server's CLI reads (`env = "..."` in src/)."""
-    return {m for p in ROOT.joinpath("src").rglob("*.rs") for m in re.findall(r'env = "([A-Z0-9_]+)"', p.read_text())}
+    return {m for p in rust_sources() for m in re.findall(r'env = "([A-Z0-9_]+)"', p.read_text())}
 
 
 def server_routes() -> set[str]:
-    return {m for p in ROOT.joinpath("src").rglob("*.rs") for m in re.findall(r'\.route\("([^"]+)"', p.read_text())}
+    return {m for p in rust_sources() for m in re.findall(r'\.route\("([^"]+)"', p.read_text())}
 
 
 def pod_spec(doc: dict) -> dict:
@@ -261,9 +266,12 @@ def worst_case_memory(container: dict) -> dict[str, float]:
     body = int(env["POSEFUSE_BODY_LIMIT"])
     assert permits > 0 and waiting > 0 and body > 0, "0 would size them from the node's cores"
     persons = int(
-        env.get("POSEFUSE_MAX_PERSONS") or rust_const("src/service/predict.rs", r"MAX_PERSONS: usize = ([\d_]+)")
+        env.get("POSEFUSE_MAX_PERSONS")
+        or rust_const("crates/serve/src/service/predict.rs", r"MAX_PERSONS: usize = ([\d_]+)")
     )
-    points = int(env.get("POSEFUSE_MAX_POINTS") or rust_const("src/service/limits.rs", r"max_points: ([\d_]+)"))
+    points = int(
+        env.get("POSEFUSE_MAX_POINTS") or rust_const("crates/serve/src/service/limits.rs", r"max_points: ([\d_]+)")
+    )
     manifest = yaml.safe_load(ROOT.joinpath("models/default/manifest.json").read_text())
     side = manifest["preprocessing"]["image_size"]
     crops = persons * side * side * 3 * 4  # float32 CHW crop per person

@@ -1,6 +1,6 @@
 """An exported bundle run as the server runs it: the ONNX files through ONNX Runtime, the crops
-normalized as src/pipeline/crop.rs does, the heatmaps smoothed and sampled as
-src/pipeline/fusion.rs does. `tools.evaluate_bundle` checks this path against `posefuse eval`
+normalized as crates/core/src/pipeline/crop.rs does, the heatmaps smoothed and sampled as
+crates/core/src/pipeline/fusion.rs does. `tools.evaluate_bundle` checks this path against `posefuse eval`
 (tests/eval_parity.rs); `fit` scores the bundle it wrote with it, one test shard at a time."""
 
 from __future__ import annotations
@@ -35,7 +35,7 @@ EVAL_KEYS = (
 
 
 def normalize(images: np.ndarray, cfg: PipelineConfig) -> np.ndarray:
-    """uint8 [M,S,S,3] -> float32 [M,3,S,S], as src/pipeline/crop.rs normalizes."""
+    """uint8 [M,S,S,3] -> float32 [M,3,S,S], as crates/core/src/pipeline/crop.rs normalizes."""
     mean = np.asarray(cfg.mean, dtype=np.float32)
     std = np.asarray(cfg.std, dtype=np.float32)
     scale = (1.0 / (255.0 * std)).astype(np.float32)

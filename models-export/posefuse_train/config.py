@@ -1,6 +1,6 @@
 """Configurations as plain dataclasses.
 
-`PipelineConfig` mirrors src/pipeline/config.rs field for field: it is read from the training
+`PipelineConfig` mirrors crates/core/src/pipeline/config.rs field for field: it is read from the training
 data's dataset.json and copied verbatim into the bundle manifest, so the server pre-processes
 exactly as the data was prepared.
 """
@@ -25,7 +25,8 @@ class PipelineConfig:
     num_points: int = 256
     box_margin: float = 0.15
     rotate_by_heading: bool = True
-    # The point networks' frame (src/pipeline/config.rs `PointFrame`); None: after rotate_by_heading.
+    # The point networks' frame (crates/core/src/pipeline/config.rs `PointFrame`); None: after
+    # rotate_by_heading.
     frame: str | None = None
     view_origin: list[float] = field(default_factory=lambda: list(NOMINAL_LIDAR_ORIGIN))
     lift_temperature: float = 2000.0
@@ -52,7 +53,7 @@ class PipelineConfig:
     def to_dict(self) -> dict:
         d = dataclasses.asdict(self)
         # Written as the server writes them: `frame` only for the view frame, `view_origin` only
-        # when not the nominal one (src/pipeline/config.rs).
+        # when not the nominal one (crates/core/src/pipeline/config.rs).
         if d["frame"] is None:
             del d["frame"]
         if d["view_origin"] == NOMINAL_LIDAR_ORIGIN:

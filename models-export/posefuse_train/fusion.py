@@ -1,4 +1,5 @@
-"""Modality fusion and heatmap decoding, bit-for-bit the server's (src/pipeline/fusion.rs, lift.rs):
+"""Modality fusion and heatmap decoding, bit-for-bit the server's (crates/core/src/pipeline/fusion.rs,
+lift.rs):
 Gaussian smoothing with zero padding, per-point cell sampling, argmax + quarter-cell decoding."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""The 13 keypoints, in the project's order (mirrors src/keypoints.rs)."""
+"""The 13 keypoints, in the project's order (mirrors crates/core/src/keypoints.rs)."""
 
 K = 13
 

@@ -1,4 +1,5 @@
-"""Evaluation metrics, the Python copy of src/metrics/ (checked against tests/golden/metrics.json).
+"""Evaluation metrics, the Python copy of crates/core/src/metrics/ (checked against
+tests/golden/metrics.json).
 
 A prediction of NaN is a missing keypoint: OKS 0, left out of MPJPE, fails PCK, costs the PEM clip.
 MPJPE, PCK and PEM pool every visible keypoint of every person; OKS/ACC counts persons; a person
@@ -85,7 +86,7 @@ def summarize(e: dict, three_d: bool) -> dict:
 
 
 def report(e3: dict, e2: dict | None) -> dict:
-    """Same keys as the server's MetricsReport (src/metrics/accumulator.rs)."""
+    """Same keys as the server's MetricsReport (crates/core/src/metrics/accumulator.rs)."""
     a = summarize(e3, True)
     r = {
         "count_3d": a["count"],
@@ -130,7 +131,7 @@ def local_to_vehicle(local: np.ndarray, box3d: np.ndarray, frame_yaw: np.ndarray
 
 
 # Waymo's camera model trusts a projection only inside these radial distortion factors
-# (src/geometry/camera.rs, RADIAL_FACTOR_RANGE).
+# (crates/core/src/geometry/camera.rs, RADIAL_FACTOR_RANGE).
 RADIAL_FACTOR_RANGE = (0.8, 1.2)
 
 

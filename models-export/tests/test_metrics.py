@@ -57,7 +57,7 @@ def test_ground_truth_scores_perfectly_in_3d_and_after_projection(synthetic_sets
 def test_metrics_match_the_server_golden_cases():
     path = GOLDEN / "metrics.json"
     if not path.exists():
-        pytest.fail(f"{path} is missing: it is written from src/metrics and pins the Python copy")
+        pytest.fail(f"{path} is missing: it is written from crates/core/src/metrics and pins the Python copy")
     g = json.loads(path.read_text())
     assert g["cases"], "no golden cases"
     for i, c in enumerate(g["cases"]):
@@ -83,7 +83,8 @@ def test_box_frame_matches_the_server_golden_vectors():
     frames) as the Rust pipeline computes them; the Python inverse maps the latter back onto the former."""
     path = GOLDEN / "points.json"
     if not path.exists():
-        pytest.fail(f"{path} is missing: it is written from src/pipeline and pins the Python copy")
+        pytest.fail(f"{path} is missing: it is written from crates/core/src/pipeline and pins the Python "
+                    "copy")
     g = json.loads(path.read_text())
     b = g["box3d"]
     box = np.array(

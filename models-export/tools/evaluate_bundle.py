@@ -45,7 +45,7 @@ def same_config(a: PipelineConfig, b: PipelineConfig) -> bool:
 
 
 def person_modes(requested: str, d: dict, has_image: np.ndarray, cfg: PipelineConfig) -> np.ndarray:
-    """The mode the server runs per person (src/server/predict.rs): auto picks fusion with the
+    """The mode the server runs per person (crates/serve/src/server/predict.rs): auto picks fusion with the
     image and at least min_points in-box points, camera lifting with the image and fewer points,
     LiDAR-only without an image (every simulated person has a 2D box in view)."""
     if requested != "auto":

@@ -294,6 +294,6 @@ def test_the_preview_draws_the_annotations_over_their_images(drive, scored, tmp_
     assert "2 images" in p.stdout
     sheet = np.asarray(Image.open(png).convert("RGB")).astype(int)
     assert sheet.shape[0] == 100
-    # the bones' colour (0.1, 0.9, 0.4 in src/ros/viz.rs) is drawn
+    # the bones' colour (0.1, 0.9, 0.4 in crates/tools/src/ros/viz.rs) is drawn
     bone = np.array([26, 230, 102])
     assert (np.abs(sheet - bone).max(axis=2) <= 12).sum() > 20

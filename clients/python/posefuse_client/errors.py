@@ -5,7 +5,7 @@ from __future__ import annotations
 import re
 from typing import Any
 
-# The server's gRPC status messages start with its error's text (src/error.rs); these prefixes give
+# The server's gRPC status messages start with its error's text (crates/core/src/error.rs); these prefixes give
 # back the JSON API's stable code, and the backquoted name gives the field.
 _GRPC_MESSAGE_CODES = [
     ("malformed request:", "malformed_request"),
