@@ -1,8 +1,11 @@
-//! `posefuse bench` against an in-process server: every image form is answered.
+//! `posefuse bench` against an in-process server: every image form and concurrency is answered,
+//! only with 200, with every fixture person in the answers, and the raw reference is measured.
 
 mod server_support;
 
 use posefuse::loadbench::{run_bench, BenchOptions, ImageForm, Protocol};
+use std::time::Duration;
+
 use posefuse::runtime::RuntimeConfig;
 use server_support::*;
 
@@ -14,6 +17,8 @@ fn the_bench_loads_a_server_with_every_image_form() {
     std::fs::write(data.path().join("requests/frames.json"), serde_json::to_vec(&frames).unwrap()).unwrap();
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
     let server = rt.block_on(start(config()));
+    let forms = [ImageForm::AsIs, ImageForm::Jpeg420, ImageForm::Jpeg444, ImageForm::Rgb];
+    let persons_per_frame: Vec<usize> = frames.iter().map(|f| f.persons.len()).collect();
     for protocol in [Protocol::Http, Protocol::Grpc] {
         let args = BenchOptions {
             url: Some(server.url("")),
@@ -21,7 +26,7 @@ fn the_bench_loads_a_server_with_every_image_form() {
             data: data.path().to_path_buf(),
             concurrency: vec![1, 3],
             duration: 0.3,
-            image: vec![ImageForm::AsIs, ImageForm::Jpeg420, ImageForm::Jpeg444, ImageForm::Rgb],
+            image: forms.to_vec(),
             protocol,
             frames: 2,
             timeout: 30.0,
@@ -30,8 +35,22 @@ fn the_bench_loads_a_server_with_every_image_form() {
             runtime: RuntimeConfig::DEFAULT,
             serve_args: Vec::new(),
         };
-        // fails when a step gets no 200 answer, or the raw ceiling cannot run on the persons
-        run_bench(args).unwrap();
+        let report = run_bench(args).unwrap();
+        assert!(report.raw_frame_p50.is_some_and(|p| p > Duration::ZERO), "{report:?}");
+        assert!(report.raw_persons_per_s.is_some_and(|p| p > 0.0), "{report:?}");
+        let steps: Vec<(ImageForm, usize)> = report.steps.iter().map(|s| (s.form, s.clients)).collect();
+        let want: Vec<(ImageForm, usize)> = forms.iter().flat_map(|&f| [(f, 1), (f, 3)]).collect();
+        assert_eq!(steps, want, "{protocol:?}: one step per form and concurrency, in order");
+        for s in &report.steps {
+            let what = format!("{protocol:?} {:?} at {} clients", s.form, s.clients);
+            assert!(s.answered > 0, "{what}: nothing answered");
+            assert_eq!(s.statuses.keys().collect::<Vec<_>>(), ["200"], "{what}: {:?}", s.statuses);
+            assert_eq!(s.statuses["200"], s.answered, "{what}");
+            // Clients cycle through the frames: every answer holds one frame's persons.
+            let (lo, hi) = (persons_per_frame.iter().min().unwrap(), persons_per_frame.iter().max().unwrap());
+            assert!(s.persons >= lo * s.answered && s.persons <= hi * s.answered, "{what}: {} persons", s.persons);
+            assert!(s.frames_per_s > 0.0 && s.p50 > Duration::ZERO && s.p50 <= s.p99, "{what}: {s:?}");
+        }
     }
     rt.block_on(server.shutdown()).unwrap();
 }

@@ -487,8 +487,32 @@ async fn wait_ready(url: &str) -> anyhow::Result<()> {
     bail!("{url} did not become ready within 120 s")
 }
 
-/// Runs `posefuse bench`.
-pub fn run_bench(args: BenchOptions) -> anyhow::Result<()> {
+/// What one step of the bench measured (one image form at one concurrency).
+#[derive(Debug, Clone)]
+pub struct StepReport {
+    pub form: ImageForm,
+    pub clients: usize,
+    /// Requests answered with 200.
+    pub answered: usize,
+    /// Persons in the answered requests.
+    pub persons: usize,
+    pub frames_per_s: f64,
+    pub p50: Duration,
+    pub p99: Duration,
+    /// Every status seen, with its count (`"200"`, `"429"`, transport errors by name).
+    pub statuses: std::collections::BTreeMap<String, usize>,
+}
+
+/// What `posefuse bench` measured: the raw ONNX Runtime reference (unless `no_raw`) and each step.
+#[derive(Debug, Clone)]
+pub struct BenchReport {
+    pub raw_frame_p50: Option<Duration>,
+    pub raw_persons_per_s: Option<f64>,
+    pub steps: Vec<StepReport>,
+}
+
+/// Runs `posefuse bench`: prints its table and returns what it measured.
+pub fn run_bench(args: BenchOptions) -> anyhow::Result<BenchReport> {
     let mut frames: Vec<Frame> = posefuse_serve::eval::load_fixtures(&args.data)?.into_iter().map(|(_, f)| f).collect();
     frames.truncate(args.frames.max(1));
     let persons: usize = frames.iter().map(|f| f.persons.len()).sum();
@@ -524,6 +548,11 @@ pub fn run_bench(args: BenchOptions) -> anyhow::Result<()> {
     let pid = args.server_pid.or_else(|| spawned.as_ref().map(|s| s.child.id()));
     rt.block_on(wait_ready(&url))?;
     println!();
+    let mut report = BenchReport {
+        raw_frame_p50: raw.as_ref().map(|r| r.frame_p50),
+        raw_persons_per_s: raw.as_ref().map(|r| r.persons_per_s),
+        steps: Vec::new(),
+    };
     println!("| image | clients | frames/s | persons/s | p50 ms | p99 ms | p50 / raw | persons/s / raw | statuses | peak RSS MB |");
     println!("|---|---|---|---|---|---|---|---|---|---|");
     for &form in &args.image {
@@ -559,13 +588,23 @@ pub fn run_bench(args: BenchOptions) -> anyhow::Result<()> {
                 statuses.join(", "),
                 s.peak_rss_kb.map_or("–".to_string(), |kb| format!("{:.0}", kb as f64 / 1024.0)),
             );
+            report.steps.push(StepReport {
+                form,
+                clients: s.clients,
+                answered: s.latencies.len(),
+                persons: s.persons,
+                frames_per_s: s.latencies.len() as f64 / secs,
+                p50,
+                p99,
+                statuses: s.statuses.clone(),
+            });
         }
     }
     if let Some(hwm) = pid.and_then(|p| proc_kb(p, "VmHWM:")) {
         println!("\nserver VmHWM (lifetime peak RSS): {:.0} MB", hwm as f64 / 1024.0);
     }
     drop(spawned);
-    Ok(())
+    Ok(report)
 }
 
 #[cfg(test)]
