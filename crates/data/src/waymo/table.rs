@@ -96,10 +96,6 @@ impl Table {
         self.batch.column_by_name(name).ok_or_else(|| anyhow!("component `{}`: no column `{name}`", self.component))
     }
 
-    pub fn has(&self, name: &str) -> bool {
-        self.batch.column_by_name(name).is_some()
-    }
-
     pub fn rows(&self) -> usize {
         self.batch.num_rows()
     }
@@ -201,15 +197,6 @@ impl Table {
 
     pub fn bool_lists(&self, name: &str) -> anyhow::Result<Vec<Vec<bool>>> {
         self.lists(name, bools, "a list of booleans")
-    }
-
-    /// Booleans lists when the column exists, else `None`.
-    pub fn opt_bool_lists(&self, name: &str) -> anyhow::Result<Option<Vec<Vec<bool>>>> {
-        if self.has(name) {
-            self.bool_lists(name).map(Some)
-        } else {
-            Ok(None)
-        }
     }
 }
 
