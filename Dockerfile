@@ -18,17 +18,18 @@ ENV PIP_NO_CACHE_DIR=1
 COPY scripts scripts
 COPY models-export/requirements.txt models-export/requirements.txt
 RUN bash scripts/setup.sh --runtime-only
-COPY Cargo.toml Cargo.lock build.rs rustfmt.toml ./
+COPY Cargo.toml Cargo.lock rustfmt.toml ./
 COPY proto proto
 COPY benches benches
+COPY crates crates
 COPY src src
 # The viewer's page and example frame are embedded in the binary.
 COPY assets assets
 COPY examples examples
-# No debug info: the image is for serving (the repository's release profile keeps it for profiling).
+# The release profile has no debug info (the `profiling` profile keeps line tables).
 RUN --mount=type=cache,target=/usr/local/cargo/registry \
     --mount=type=cache,target=/src/target \
-    CARGO_PROFILE_RELEASE_DEBUG=0 cargo build --release --locked --bin posefuse \
+    cargo build --release --locked --bin posefuse \
     && cp target/release/posefuse /usr/local/bin/posefuse
 
 # No packages added: the server makes no outbound calls, and `posefuse health` is the health probe.
