@@ -45,7 +45,7 @@ fn main() -> anyhow::Result<()> {
         Command::Eval(a) => commands::eval(a),
         Command::Simulate(a) => commands::simulate(a),
         Command::Health(a) => commands::health(a),
-        Command::Bench(a) => posefuse::loadbench::run_bench(a.into()).map(|_report| ()),
+        Command::Bench(a) => Ok(posefuse::loadbench::run_bench(a.into()).map(|_report| ())?),
         Command::Waymo(a) => cli::waymo::run(a),
         Command::Mcap(a) => cli::mcap::run(a),
     }

@@ -241,3 +241,11 @@ fn no_crate_has_an_import_cycle_between_its_modules() {
         }
     }
 }
+
+/// The library crates' errors are typed; `anyhow` is the binary's alone (docs/ARCHITECTURE.md).
+#[test]
+fn only_the_binary_uses_anyhow() {
+    let users: BTreeSet<String> =
+        workspace().into_iter().filter(|(_, p)| p.deps.contains("anyhow")).map(|(name, _)| name).collect();
+    assert_eq!(users, BTreeSet::from(["posefuse".to_string()]));
+}

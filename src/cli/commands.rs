@@ -32,7 +32,7 @@ pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
     init_tracing(a.log_json);
     let config = a.server_config()?;
     tracing::info!(addr = %a.addr, ?config, "effective configuration");
-    tokio_runtime()?.block_on(posefuse::server::serve_with_signals(config, a.addr))
+    Ok(tokio_runtime()?.block_on(posefuse::server::serve_with_signals(config, a.addr))?)
 }
 
 /// Starts the runtime for a CLI command and waits for warm-up.
@@ -140,5 +140,5 @@ pub fn health(a: HealthArgs) -> anyhow::Result<()> {
 
 /// `posefuse simulate`.
 pub fn simulate(a: SimulateArgs) -> anyhow::Result<()> {
-    posefuse::sim::simulate(a.into())
+    Ok(posefuse::sim::simulate(a.into())?)
 }

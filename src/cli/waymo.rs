@@ -154,7 +154,7 @@ pub struct WaymoConvertArgs {
 /// `posefuse waymo ...`.
 pub fn run(a: WaymoArgs) -> anyhow::Result<()> {
     match a.command {
-        WaymoCommand::Simulate(s) => posefuse::waymo::sim::run(&WaymoSimOptions {
+        WaymoCommand::Simulate(s) => Ok(posefuse::waymo::sim::run(&WaymoSimOptions {
             out: s.out,
             seed: s.seed,
             segments: s.segments,
@@ -168,7 +168,7 @@ pub fn run(a: WaymoArgs) -> anyhow::Result<()> {
             profile: s.profile,
             frames_per_row_group: s.frames_per_row_group,
             jobs: s.jobs,
-        }),
+        })?),
         WaymoCommand::Convert(c) => {
             let cameras = c
                 .cameras

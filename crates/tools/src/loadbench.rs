@@ -14,8 +14,9 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use anyhow::{anyhow, bail, Context};
 use base64::Engine;
+use posefuse_data::error::Context;
+use posefuse_data::{bail, invalid};
 
 use posefuse_core::frame::{Frame, RgbPixels};
 use posefuse_core::geometry::Camera;
@@ -95,29 +96,34 @@ fn b64(bytes: &[u8]) -> String {
     base64::engine::general_purpose::STANDARD.encode(bytes)
 }
 
-fn fixture_image(frame: &Frame) -> anyhow::Result<image::RgbImage> {
-    let text = frame.image.as_ref().ok_or_else(|| anyhow!("a fixture without an image"))?;
-    let bytes = base64::engine::general_purpose::STANDARD.decode(text)?;
+fn fixture_image(frame: &Frame) -> posefuse_data::error::Result<image::RgbImage> {
+    let text = frame.image.as_ref().ok_or_else(|| invalid!("a fixture without an image"))?;
+    let bytes = base64::engine::general_purpose::STANDARD.decode(text).context("a fixture's image")?;
     Ok(image::load_from_memory(&bytes)?.into_rgb8())
 }
 
-fn encode_jpeg(img: &image::RgbImage, sampling: jpeg_encoder::SamplingFactor) -> anyhow::Result<Vec<u8>> {
+fn encode_jpeg(img: &image::RgbImage, sampling: jpeg_encoder::SamplingFactor) -> posefuse_data::error::Result<Vec<u8>> {
     let mut out = Vec::new();
     let mut enc = jpeg_encoder::Encoder::new(&mut out, posefuse_core::sample::JPEG_QUALITY);
     enc.set_sampling_factor(sampling);
-    let (w, h) = (u16::try_from(img.width())?, u16::try_from(img.height())?);
-    enc.encode(img.as_raw(), w, h, jpeg_encoder::ColorType::Rgb)?;
+    let (w, h) = (
+        u16::try_from(img.width()).context("a JPEG's width")?,
+        u16::try_from(img.height()).context("a JPEG's height")?,
+    );
+    enc.encode(img.as_raw(), w, h, jpeg_encoder::ColorType::Rgb).context("encoding a JPEG")?;
     Ok(out)
 }
 
 /// The frame as sent in `form`: the JSON frame (with `image` or `image_rgb`) and its gRPC twin.
-fn prepare(frame: &Frame, form: ImageForm) -> anyhow::Result<Prepared> {
+fn prepare(frame: &Frame, form: ImageForm) -> posefuse_data::error::Result<Prepared> {
     let mut f = frame.clone();
     for p in &mut f.persons {
         p.ground_truth = None;
     }
-    let file_bytes = |f: &Frame| -> anyhow::Result<Vec<u8>> {
-        Ok(base64::engine::general_purpose::STANDARD.decode(f.image.as_deref().unwrap_or_default())?)
+    let file_bytes = |f: &Frame| -> posefuse_data::error::Result<Vec<u8>> {
+        base64::engine::general_purpose::STANDARD
+            .decode(f.image.as_deref().unwrap_or_default())
+            .context("a fixture's image")
     };
     let (image, pixels) = match form {
         ImageForm::AsIs => (file_bytes(&f)?, None),
@@ -262,7 +268,12 @@ struct Load {
     timeout: Duration,
 }
 
-async fn run_step(load: Load, url: &str, pid: Option<u32>, frames: Arc<Vec<Prepared>>) -> anyhow::Result<Step> {
+async fn run_step(
+    load: Load,
+    url: &str,
+    pid: Option<u32>,
+    frames: Arc<Vec<Prepared>>,
+) -> posefuse_data::error::Result<Step> {
     let Load { protocol, clients, duration, timeout } = load;
     let sampler = RssSampler::start(pid);
     let started = Instant::now();
@@ -272,7 +283,8 @@ async fn run_step(load: Load, url: &str, pid: Option<u32>, frames: Arc<Vec<Prepa
         let mut grpc = match protocol {
             Protocol::Grpc => Some(
                 proto::posefuse_client::PosefuseClient::connect(url.clone())
-                    .await?
+                    .await
+                    .with_context(|| format!("connecting to {url}"))?
                     .max_decoding_message_size(64 << 20)
                     .max_encoding_message_size(64 << 20),
             ),
@@ -307,7 +319,7 @@ async fn run_step(load: Load, url: &str, pid: Option<u32>, frames: Arc<Vec<Prepa
         peak_rss_kb: None,
     };
     for t in tasks {
-        for (d, status, persons) in t.await? {
+        for (d, status, persons) in t.await.context("a bench client")? {
             if status == "200" {
                 step.latencies.push(d);
                 step.persons += persons;
@@ -334,13 +346,17 @@ type PersonInputs = (Vec<f32>, Vec<f32>);
 
 /// Camera inputs and fusion inputs of every person of `frames` that has both, made with the
 /// server's own pipeline calls (planned decode, crop, normalize, point input, fusion features).
-fn raw_inputs(models: &mut Models, bundle: &Bundle, frames: &[Frame]) -> anyhow::Result<Vec<Vec<PersonInputs>>> {
+fn raw_inputs(
+    models: &mut Models,
+    bundle: &Bundle,
+    frames: &[Frame],
+) -> posefuse_data::error::Result<Vec<Vec<PersonInputs>>> {
     let cfg = bundle.config();
     let h = cfg.heatmap_size as usize;
     let mut out = Vec::new();
     for frame in frames {
         let calibration =
-            frame.calibration.as_ref().ok_or_else(|| anyhow::anyhow!("a single-camera frame is needed"))?;
+            frame.calibration.as_ref().ok_or_else(|| posefuse_data::invalid!("a single-camera frame is needed"))?;
         let camera = Camera::from_calibration(calibration)?;
         let points = frame.points.decode()?;
         let prepared: Vec<_> = frame
@@ -354,12 +370,12 @@ fn raw_inputs(models: &mut Models, bundle: &Bundle, frames: &[Frame]) -> anyhow:
             bail!("a fixture without a usable image");
         }
         let cut = image_decode::decode_crops(image, &windows, camera.width, camera.height, || Ok(()))?
-            .map_err(|e| anyhow!(e))?;
+            .map_err(|e| invalid!("{e}"))?;
         let mut persons = Vec::new();
         let mut cut = cut.into_iter();
         for p in prepared {
             let Some(_) = p.crop else { continue };
-            let crop = cut.next().ok_or_else(|| anyhow!("one crop per window"))?;
+            let crop = cut.next().ok_or_else(|| invalid!("one crop per window"))?;
             let Some(input) = p.input else { continue };
             let x = normalize(&crop, cfg);
             let hm = models.run(ModelKind::Camera, 1, &x)?;
@@ -371,7 +387,7 @@ fn raw_inputs(models: &mut Models, bundle: &Bundle, frames: &[Frame]) -> anyhow:
     Ok(out)
 }
 
-fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> anyhow::Result<Raw> {
+fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> posefuse_data::error::Result<Raw> {
     let rt = &args.runtime;
     let bundle = Bundle::load(&args.model_dir)?;
     let ort_env = env::environment(&env::resolve_lib(rt.ort_lib.as_deref()))?;
@@ -416,7 +432,7 @@ fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> anyhow::Result<Raw> {
     let mut threads = Vec::new();
     for (w, mut m) in sessions.into_iter().enumerate() {
         let (all, done) = (all.clone(), done.clone());
-        threads.push(std::thread::spawn(move || -> anyhow::Result<()> {
+        threads.push(std::thread::spawn(move || -> posefuse_data::error::Result<()> {
             let mut i = w * 13;
             while started.elapsed().as_secs_f64() < secs {
                 let refs: Vec<&(Vec<f32>, Vec<f32>)> = (0..b).map(|k| &all[(i + k) % all.len()]).collect();
@@ -431,7 +447,7 @@ fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> anyhow::Result<Raw> {
         }));
     }
     for t in threads {
-        t.join().map_err(|_| anyhow!("raw ONNX Runtime thread panicked"))??;
+        t.join().map_err(|_| invalid!("raw ONNX Runtime thread panicked"))??;
     }
     let persons_per_s = done.load(Ordering::Relaxed) as f64 / started.elapsed().as_secs_f64();
     Ok(Raw { frame_p50: percentile(&per_frame, 0.5), persons_per_s })
@@ -450,7 +466,7 @@ impl Drop for Spawned {
     }
 }
 
-fn spawn_server(args: &BenchOptions) -> anyhow::Result<Spawned> {
+fn spawn_server(args: &BenchOptions) -> posefuse_data::error::Result<Spawned> {
     let port = std::net::TcpListener::bind("127.0.0.1:0")?.local_addr()?.port();
     let r = &args.runtime;
     let mut cmd = Command::new(std::env::current_exe()?);
@@ -473,7 +489,7 @@ fn spawn_server(args: &BenchOptions) -> anyhow::Result<Spawned> {
     Ok(Spawned { child, url: format!("http://127.0.0.1:{port}") })
 }
 
-async fn wait_ready(url: &str) -> anyhow::Result<()> {
+async fn wait_ready(url: &str) -> posefuse_data::error::Result<()> {
     let client = reqwest::Client::new();
     let deadline = Instant::now() + Duration::from_secs(120);
     while Instant::now() < deadline {
@@ -512,7 +528,7 @@ pub struct BenchReport {
 }
 
 /// Runs `posefuse bench`: prints its table and returns what it measured.
-pub fn run_bench(args: BenchOptions) -> anyhow::Result<BenchReport> {
+pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport> {
     let mut frames: Vec<Frame> = posefuse_serve::eval::load_fixtures(&args.data)?.into_iter().map(|(_, f)| f).collect();
     frames.truncate(args.frames.max(1));
     let persons: usize = frames.iter().map(|f| f.persons.len()).sum();
@@ -556,7 +572,8 @@ pub fn run_bench(args: BenchOptions) -> anyhow::Result<BenchReport> {
     println!("| image | clients | frames/s | persons/s | p50 ms | p99 ms | p50 / raw | persons/s / raw | statuses | peak RSS MB |");
     println!("|---|---|---|---|---|---|---|---|---|---|");
     for &form in &args.image {
-        let prepared: Vec<Prepared> = frames.iter().map(|f| prepare(f, form)).collect::<anyhow::Result<_>>()?;
+        let prepared: Vec<Prepared> =
+            frames.iter().map(|f| prepare(f, form)).collect::<posefuse_data::error::Result<_>>()?;
         let prepared = Arc::new(prepared);
         let load = Load {
             protocol: args.protocol,

@@ -12,8 +12,8 @@ use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 use std::time::Duration;
 
-use anyhow::Context;
 use futures::StreamExt;
+use posefuse_data::error::Context;
 
 use posefuse_core::frame::{Box3d, Frame, FrameCamera, Person, Points, RequestedMode};
 use posefuse_core::geometry::Camera;
@@ -36,27 +36,27 @@ pub enum Scorer<'a> {
 }
 
 impl Scorer<'_> {
-    pub async fn answer(&self, frame: Frame, timeout: Duration) -> anyhow::Result<PoseResponse> {
+    pub async fn answer(&self, frame: Frame, timeout: Duration) -> posefuse_data::error::Result<PoseResponse> {
         match self {
             Scorer::InProcess(p) => Ok(p.answer(frame, None, timeout).await?),
             Scorer::Server(addr) => tokio::time::timeout(timeout, post_poses(addr, &frame))
                 .await
-                .map_err(|_| anyhow::anyhow!("{addr}: timed out"))?,
+                .map_err(|_| posefuse_data::invalid!("{addr}: timed out"))?,
         }
     }
 }
 
 /// `host:port` of a server URL (`http://host:port/` or `host:port`).
-pub fn server_addr(url: &str) -> anyhow::Result<String> {
+pub fn server_addr(url: &str) -> posefuse_data::error::Result<String> {
     let rest = url.strip_prefix("http://").unwrap_or(url);
-    anyhow::ensure!(!url.starts_with("https://"), "--server {url}: only plain http is supported");
+    posefuse_data::ensure!(!url.starts_with("https://"), "--server {url}: only plain http is supported");
     let addr = rest.trim_end_matches('/');
-    anyhow::ensure!(!addr.is_empty() && !addr.contains('/'), "--server {url}: expected http://host:port");
+    posefuse_data::ensure!(!addr.is_empty() && !addr.contains('/'), "--server {url}: expected http://host:port");
     Ok(if addr.contains(':') { addr.to_owned() } else { format!("{addr}:80") })
 }
 
 /// One `POST /v1/poses` over HTTP/1.1 (one connection per request).
-async fn post_poses(addr: &str, frame: &Frame) -> anyhow::Result<PoseResponse> {
+async fn post_poses(addr: &str, frame: &Frame) -> posefuse_data::error::Result<PoseResponse> {
     use tokio::io::{AsyncReadExt, AsyncWriteExt};
     let body = serde_json::to_vec(frame)?;
     let mut s = tokio::net::TcpStream::connect(addr).await.with_context(|| format!("connecting to {addr}"))?;
@@ -68,29 +68,32 @@ async fn post_poses(addr: &str, frame: &Frame) -> anyhow::Result<PoseResponse> {
     s.write_all(&body).await?;
     let mut buf = Vec::new();
     s.read_to_end(&mut buf).await?;
-    let split =
-        buf.windows(4).position(|w| w == b"\r\n\r\n").ok_or_else(|| anyhow::anyhow!("{addr}: malformed response"))?;
+    let split = buf
+        .windows(4)
+        .position(|w| w == b"\r\n\r\n")
+        .ok_or_else(|| posefuse_data::invalid!("{addr}: malformed response"))?;
     let head = String::from_utf8_lossy(&buf[..split]).to_ascii_lowercase();
     let mut body = buf[split + 4..].to_vec();
     if head.contains("transfer-encoding: chunked") {
         body = dechunk(&body)?;
     }
     let status: u16 = head.split_whitespace().nth(1).and_then(|c| c.parse().ok()).unwrap_or(0);
-    anyhow::ensure!(status == 200, "{addr}: HTTP {status}: {}", String::from_utf8_lossy(&body));
+    posefuse_data::ensure!(status == 200, "{addr}: HTTP {status}: {}", String::from_utf8_lossy(&body));
     Ok(serde_json::from_slice(&body)?)
 }
 
-fn dechunk(mut b: &[u8]) -> anyhow::Result<Vec<u8>> {
+fn dechunk(mut b: &[u8]) -> posefuse_data::error::Result<Vec<u8>> {
     let mut out = Vec::new();
     loop {
-        let eol = b.windows(2).position(|w| w == b"\r\n").ok_or_else(|| anyhow::anyhow!("bad chunked body"))?;
+        let eol = b.windows(2).position(|w| w == b"\r\n").ok_or_else(|| posefuse_data::invalid!("bad chunked body"))?;
         let size_text = String::from_utf8_lossy(&b[..eol]);
-        let size = usize::from_str_radix(size_text.split(';').next().unwrap_or("").trim(), 16)?;
+        let size =
+            usize::from_str_radix(size_text.split(';').next().unwrap_or("").trim(), 16).context("a chunk size")?;
         b = &b[eol + 2..];
         if size == 0 {
             return Ok(out);
         }
-        anyhow::ensure!(b.len() >= size + 2, "truncated chunked body");
+        posefuse_data::ensure!(b.len() >= size + 2, "truncated chunked body");
         out.extend_from_slice(&b[..size]);
         b = &b[size + 2..];
     }
@@ -114,7 +117,7 @@ pub fn scoring_requests(
     cameras: &std::collections::BTreeMap<i64, Camera>,
     f: &FrameData,
     labels: &FrameLabels,
-) -> anyhow::Result<Vec<Frame>> {
+) -> posefuse_data::error::Result<Vec<Frame>> {
     let points = frame_points(&seg.lasers, f, true)?;
     let mut by_camera: std::collections::BTreeMap<i64, Vec<Person>> = Default::default();
     let mut lidar_only = Vec::new();
@@ -208,9 +211,9 @@ pub fn shard_segments(all: Vec<String>, (i, k): (usize, usize)) -> Vec<String> {
 
 /// Runs `posefuse waymo score`. A segment whose predictions file
 /// exists is skipped (rerun to resume); files appear only when complete.
-pub async fn score(scorer: &Scorer<'_>, o: &ScoreOptions) -> anyhow::Result<ScoreSummary> {
+pub async fn score(scorer: &Scorer<'_>, o: &ScoreOptions) -> posefuse_data::error::Result<ScoreSummary> {
     let started = std::time::Instant::now();
-    anyhow::ensure!(o.shard.1 > 0 && o.shard.0 < o.shard.1, "--shard i/k needs 0 ≤ i < k");
+    posefuse_data::ensure!(o.shard.1 > 0 && o.shard.0 < o.shard.1, "--shard i/k needs 0 ≤ i < k");
     let names = shard_segments(posefuse_data::waymo::segments::segments_in(&o.dataset)?, o.shard);
     std::fs::create_dir_all(&o.out).with_context(|| format!("creating {}", o.out.display()))?;
     let mut sum = ScoreSummary::default();
@@ -228,7 +231,7 @@ pub async fn score(scorer: &Scorer<'_>, o: &ScoreOptions) -> anyhow::Result<Scor
             .iter()
             .map(|(n, c)| Camera::from_calibration(c).map(|cam| (*n, cam)))
             .collect::<posefuse_core::Result<_>>()
-            .map_err(|e| anyhow::anyhow!("segment {name}: component `camera_calibration`: {e}"))?;
+            .map_err(|e| posefuse_data::invalid!("segment {name}: component `camera_calibration`: {e}"))?;
         let mut rows: Vec<(i64, String, Vec<Kp3dLabel>)> = Vec::new();
         for ts in seg.timestamps.clone() {
             let labels = seg.labels(ts);
@@ -274,7 +277,11 @@ pub async fn score(scorer: &Scorer<'_>, o: &ScoreOptions) -> anyhow::Result<Scor
 }
 
 /// Writes `OUT/<segment>.parquet` (through a temporary name, renamed when complete).
-pub fn write_predictions(out: &Path, segment: &str, rows: &[(i64, String, Vec<Kp3dLabel>)]) -> anyhow::Result<()> {
+pub fn write_predictions(
+    out: &Path,
+    segment: &str,
+    rows: &[(i64, String, Vec<Kp3dLabel>)],
+) -> posefuse_data::error::Result<()> {
     let tmp_name = format!(".{segment}.partial");
     let mut c = Columns::new(false);
     c.string(key::SEGMENT, &vec![segment.to_owned(); rows.len()]);
@@ -292,7 +299,10 @@ pub fn write_predictions(out: &Path, segment: &str, rows: &[(i64, String, Vec<Kp
 }
 
 /// Keypoints by (timestamp, laser object id) of a file in `lidar_hkp`'s layout.
-fn read_keypoints(path: &Path, component: &str) -> anyhow::Result<HashMap<(i64, String), Vec<Kp3dLabel>>> {
+fn read_keypoints(
+    path: &Path,
+    component: &str,
+) -> posefuse_data::error::Result<HashMap<(i64, String), Vec<Kp3dLabel>>> {
     use posefuse_data::waymo::schema::col;
     let t = read_columns(
         path,
@@ -323,7 +333,7 @@ pub struct WaymoEvalReport {
 }
 
 /// Runs `posefuse waymo eval`.
-pub fn evaluate(dataset: &Path, predictions: &Path) -> anyhow::Result<WaymoEvalReport> {
+pub fn evaluate(dataset: &Path, predictions: &Path) -> posefuse_data::error::Result<WaymoEvalReport> {
     let names = posefuse_data::waymo::segments::segments_in(dataset)?;
     let mut acc = MetricsAccumulator::new();
     let (mut segments, mut missing) = (0, 0);
@@ -358,7 +368,7 @@ pub fn evaluate(dataset: &Path, predictions: &Path) -> anyhow::Result<WaymoEvalR
             acc.add_eval_3d(&e);
         }
     }
-    anyhow::ensure!(
+    posefuse_data::ensure!(
         segments > 0,
         "no segment has both {}/lidar_hkp and a predictions file in {}",
         dataset.display(),

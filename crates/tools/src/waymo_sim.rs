@@ -23,6 +23,7 @@ use posefuse_core::keypoints::K;
 use posefuse_core::pipeline::PipelineConfig;
 use posefuse_core::pipeline::NOMINAL_LIDAR_ORIGIN as LIDAR_ORIGIN;
 use posefuse_core::sample::{encode_jpeg, Sample};
+use posefuse_data::error::Context;
 use posefuse_data::sim::dataset::{frame_rng, persons_in_frame, render_frame_image};
 use posefuse_data::sim::labels::label_person;
 use posefuse_data::sim::math::{hash, madd, V3};
@@ -121,7 +122,7 @@ fn yawed(yaw: f64, t: V3) -> Mat4 {
 }
 
 /// The rig at the given sizes.
-pub fn rig(o: &WaymoSimOptions) -> anyhow::Result<Rig> {
+pub fn rig(o: &WaymoSimOptions) -> posefuse_data::error::Result<Rig> {
     let front = nominal_camera()?.to_calibration();
     let s = o.image_scale;
     let mut cameras = Vec::new();
@@ -352,7 +353,7 @@ pub fn simulate_frame(
     seg: usize,
     index: usize,
     cfg: &PipelineConfig,
-) -> anyhow::Result<(SimFrame, Vec<Sample>)> {
+) -> posefuse_data::error::Result<(SimFrame, Vec<Sample>)> {
     let seg_seed = hash(&[o.seed, seg as u64]);
     let mut rng = frame_rng(seg_seed, index);
     let n = persons_in_frame(&mut rng);
@@ -517,7 +518,7 @@ fn calibration_batches(
     rig: &Rig,
     segment: &str,
     alt: bool,
-) -> anyhow::Result<(arrow_array::RecordBatch, arrow_array::RecordBatch)> {
+) -> posefuse_data::error::Result<(arrow_array::RecordBatch, arrow_array::RecordBatch)> {
     let mut c = Columns::new(alt);
     let n = rig.cameras.len();
     key_cols(&mut c, segment, n);
@@ -551,13 +552,22 @@ struct SegmentWriters {
 }
 
 impl SegmentWriters {
-    fn get(&mut self, name: &str) -> anyhow::Result<&mut ComponentWriter> {
-        self.w.iter_mut().find(|x| x.0 == name).map(|x| &mut x.1).ok_or_else(|| anyhow::anyhow!("writer {name}"))
+    fn get(&mut self, name: &str) -> posefuse_data::error::Result<&mut ComponentWriter> {
+        self.w
+            .iter_mut()
+            .find(|x| x.0 == name)
+            .map(|x| &mut x.1)
+            .ok_or_else(|| posefuse_data::invalid!("writer {name}"))
     }
 }
 
 /// Writes a chunk of frames (one row group per component).
-fn write_frames(w: &mut SegmentWriters, frames: &[SimFrame], segment: &str, alt: bool) -> anyhow::Result<()> {
+fn write_frames(
+    w: &mut SegmentWriters,
+    frames: &[SimFrame],
+    segment: &str,
+    alt: bool,
+) -> posefuse_data::error::Result<()> {
     // camera_image
     let mut c = Columns::new(alt);
     let rows: Vec<(i64, i64, &Vec<u8>)> =
@@ -669,16 +679,17 @@ fn write_frames(w: &mut SegmentWriters, frames: &[SimFrame], segment: &str, alt:
 
 /// Writes the segments; returns the simulator's direct prepared samples of each segment (for
 /// the round trip) when `keep_samples`.
-pub fn simulate(o: &WaymoSimOptions, keep_samples: bool) -> anyhow::Result<Vec<Vec<Sample>>> {
-    anyhow::ensure!(o.frames > 0 && o.segments > 0, "--frames and --segments must be positive");
-    anyhow::ensure!(
+pub fn simulate(o: &WaymoSimOptions, keep_samples: bool) -> posefuse_data::error::Result<Vec<Vec<Sample>>> {
+    posefuse_data::ensure!(o.frames > 0 && o.segments > 0, "--frames and --segments must be positive");
+    posefuse_data::ensure!(
         o.top[0] >= 2 && o.top[1] >= 2 && o.short[0] >= 2 && o.short[1] >= 2,
         "range images need at least 2×2 pixels"
     );
-    anyhow::ensure!(o.image_scale > 0.0 && o.image_scale <= 2.0, "--image-scale must be in (0, 2]");
+    posefuse_data::ensure!(o.image_scale > 0.0 && o.image_scale <= 2.0, "--image-scale must be in (0, 2]");
     let cfg = PipelineConfig::default();
     let rig = rig(o)?;
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(o.jobs.unwrap_or(0)).build()?;
+    let pool =
+        rayon::ThreadPoolBuilder::new().num_threads(o.jobs.unwrap_or(0)).build().context("the worker threads")?;
     let bar = indicatif::ProgressBar::new((o.segments * o.frames) as u64);
     let mut all = Vec::new();
     for seg in 0..o.segments {
@@ -706,7 +717,7 @@ pub fn simulate(o: &WaymoSimOptions, keep_samples: bool) -> anyhow::Result<Vec<V
         let chunk = o.frames_per_row_group.max(1);
         for start in (0..o.frames).step_by(chunk) {
             let end = (start + chunk).min(o.frames);
-            let done: Vec<anyhow::Result<(SimFrame, Vec<Sample>)>> =
+            let done: Vec<posefuse_data::error::Result<(SimFrame, Vec<Sample>)>> =
                 pool.install(|| (start..end).into_par_iter().map(|i| simulate_frame(o, &rig, seg, i, &cfg)).collect());
             let mut frames = Vec::new();
             for d in done {
@@ -729,7 +740,7 @@ pub fn simulate(o: &WaymoSimOptions, keep_samples: bool) -> anyhow::Result<Vec<V
 }
 
 /// Writes the segments (the `posefuse simulate --format waymo-v2` entry point).
-pub fn run(o: &WaymoSimOptions) -> anyhow::Result<()> {
+pub fn run(o: &WaymoSimOptions) -> posefuse_data::error::Result<()> {
     let started = std::time::Instant::now();
     simulate(o, false)?;
     eprintln!(

@@ -6,7 +6,7 @@ use std::fs::File;
 use std::io::BufWriter;
 use std::path::{Path, PathBuf};
 
-use anyhow::Context;
+use crate::error::Context;
 
 use super::msgs::ros2msg;
 
@@ -29,7 +29,7 @@ pub fn partial_path(dest: &Path) -> PathBuf {
 }
 
 impl LogWriter {
-    pub fn create(dest: &Path, profile: &str) -> anyhow::Result<LogWriter> {
+    pub fn create(dest: &Path, profile: &str) -> crate::error::Result<LogWriter> {
         let partial = partial_path(dest);
         if let Some(dir) = dest.parent().filter(|d| !d.as_os_str().is_empty()) {
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -45,7 +45,12 @@ impl LogWriter {
     }
 
     /// The channel of a topic, made on first use with its schema.
-    pub fn channel(&mut self, topic: &str, schema: (&str, &str, &[u8]), message_encoding: &str) -> anyhow::Result<u16> {
+    pub fn channel(
+        &mut self,
+        topic: &str,
+        schema: (&str, &str, &[u8]),
+        message_encoding: &str,
+    ) -> crate::error::Result<u16> {
         if let Some(id) = self.channels.get(topic) {
             return Ok(*id);
         }
@@ -57,22 +62,22 @@ impl LogWriter {
     }
 
     /// A ROS 2 message (CDR) on `topic`, logged at `time_ns`.
-    pub fn ros(&mut self, topic: &str, schema_name: &str, time_ns: i64, data: &[u8]) -> anyhow::Result<()> {
-        let definition = ros2msg(schema_name).ok_or_else(|| anyhow::anyhow!("no definition of {schema_name}"))?;
+    pub fn ros(&mut self, topic: &str, schema_name: &str, time_ns: i64, data: &[u8]) -> crate::error::Result<()> {
+        let definition = ros2msg(schema_name).ok_or_else(|| crate::invalid!("no definition of {schema_name}"))?;
         let id = self.channel(topic, (schema_name, "ros2msg", definition.as_bytes()), "cdr")?;
         self.write(id, time_ns, data)
     }
 
     /// A Foxglove schema's message (protobuf) on `topic`.
-    pub fn foxglove<T: foxglove::Encode>(&mut self, topic: &str, time_ns: i64, msg: &T) -> anyhow::Result<()> {
-        let schema = T::get_schema().ok_or_else(|| anyhow::anyhow!("{topic}: a message without a schema"))?;
+    pub fn foxglove<T: foxglove::Encode>(&mut self, topic: &str, time_ns: i64, msg: &T) -> crate::error::Result<()> {
+        let schema = T::get_schema().ok_or_else(|| crate::invalid!("{topic}: a message without a schema"))?;
         let id = self.channel(topic, (&schema.name, &schema.encoding, &schema.data), &T::get_message_encoding())?;
         let mut buf = Vec::with_capacity(msg.encoded_len().unwrap_or(1024));
-        msg.encode(&mut buf).map_err(|e| anyhow::anyhow!("{topic}: {e}"))?;
+        msg.encode(&mut buf).map_err(|e| crate::invalid!("{topic}: {e}"))?;
         self.write(id, time_ns, &buf)
     }
 
-    pub fn write(&mut self, channel: u16, time_ns: i64, data: &[u8]) -> anyhow::Result<()> {
+    pub fn write(&mut self, channel: u16, time_ns: i64, data: &[u8]) -> crate::error::Result<()> {
         let t = time_ns.max(0) as u64;
         self.sequence = self.sequence.wrapping_add(1);
         let header =
@@ -81,7 +86,7 @@ impl LogWriter {
     }
 
     /// Writes the summary and gives the log its name.
-    pub fn finish(mut self) -> anyhow::Result<PathBuf> {
+    pub fn finish(mut self) -> crate::error::Result<PathBuf> {
         self.writer.finish()?;
         let file = self.writer.into_inner().into_inner().map_err(|e| e.into_error())?;
         file.sync_all()?;

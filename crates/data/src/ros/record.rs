@@ -7,7 +7,7 @@
 
 use std::path::PathBuf;
 
-use anyhow::Context;
+use crate::error::Context;
 
 use super::build::WAYMO_TO_OPTICAL;
 use super::log_writer::LogWriter;
@@ -104,9 +104,9 @@ fn cloud(h: Header, points: &[[f32; 3]]) -> PointCloud2 {
 }
 
 /// Runs `posefuse mcap record`.
-pub fn record(o: &RecordOptions) -> anyhow::Result<RecordSummary> {
+pub fn record(o: &RecordOptions) -> crate::error::Result<RecordSummary> {
     let names = crate::waymo::segments::segments_in(&o.dataset)?;
-    anyhow::ensure!(!names.is_empty(), "{}: no segments", o.dataset.display());
+    crate::ensure!(!names.is_empty(), "{}: no segments", o.dataset.display());
     let mut log = LogWriter::create(&o.out, "ros2")?;
     let mut sum = RecordSummary::default();
     let bar = indicatif::ProgressBar::new(names.len() as u64);
@@ -117,13 +117,14 @@ pub fn record(o: &RecordOptions) -> anyhow::Result<RecordSummary> {
             .iter()
             .map(|(n, c)| Camera::from_calibration(c).map(|cam| (*n, cam)))
             .collect::<posefuse_core::Result<_>>()
-            .map_err(|e| anyhow::anyhow!("segment {name}: component `camera_calibration`: {e}"))?;
+            .map_err(|e| crate::invalid!("segment {name}: component `camera_calibration`: {e}"))?;
         let lidar_in_base = seg.lasers.get(&LASER_TOP).map_or(IDENTITY, |l| mat4(&l.extrinsic));
         let base_to_lidar = rigid_inverse(&lidar_in_base);
         let start = seg.timestamps.first().copied().unwrap_or(0) * 1000;
         let mut links = vec![link(start, lidar_frame(), &lidar_in_base)];
         for (cam, c) in &cameras {
-            let e: [f64; 16] = c.to_calibration().extrinsic.as_slice().try_into()?;
+            let e: [f64; 16] =
+                c.to_calibration().extrinsic.as_slice().try_into().context("a camera extrinsic of 16 numbers")?;
             let optical_in_base = mul(&mat4(&e), &rigid_inverse(&WAYMO_TO_OPTICAL));
             links.push(link(start, camera_topics(*cam).2, &optical_in_base));
         }

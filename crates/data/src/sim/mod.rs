@@ -16,7 +16,7 @@ pub mod world;
 
 use std::path::Path;
 
-use anyhow::Context;
+use crate::error::Context;
 use indicatif::{ProgressBar, ProgressStyle};
 use rayon::prelude::*;
 
@@ -64,13 +64,14 @@ pub fn near_px(cfg: &PipelineConfig) -> f64 {
 }
 
 /// Runs `posefuse simulate`.
-pub fn simulate(args: SimulateOptions) -> anyhow::Result<()> {
+pub fn simulate(args: SimulateOptions) -> crate::error::Result<()> {
     let cfg = PipelineConfig::with_image_size(args.image_size).in_frame(args.frame);
-    cfg.validate().map_err(|e| anyhow::anyhow!("--image-size {}: {e}", args.image_size))?;
-    anyhow::ensure!(args.count > 0, "--count must be positive");
-    anyhow::ensure!(args.points_cap > 0, "--points-cap must be positive");
+    cfg.validate().map_err(|e| crate::invalid!("--image-size {}: {e}", args.image_size))?;
+    crate::ensure!(args.count > 0, "--count must be positive");
+    crate::ensure!(args.points_cap > 0, "--points-cap must be positive");
     let requests = args.requests.unwrap_or(if args.count <= 1000 { usize::MAX } else { 200 });
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(args.jobs.unwrap_or(0)).build()?;
+    let pool =
+        rayon::ThreadPoolBuilder::new().num_threads(args.jobs.unwrap_or(0)).build().context("the worker threads")?;
     let out = &args.out;
     std::fs::create_dir_all(out.join("shards")).with_context(|| format!("creating {}", out.display()))?;
     if requests > 0 {
@@ -91,7 +92,7 @@ pub fn simulate(args: SimulateOptions) -> anyhow::Result<()> {
     while produced < args.count {
         // About two samples per frame: small runs do not simulate a whole batch for nothing.
         let n_frames = (args.count - produced).div_ceil(2).clamp(2, BATCH_FRAMES);
-        let batch: Vec<anyhow::Result<FrameResult>> = pool.install(|| {
+        let batch: Vec<crate::error::Result<FrameResult>> = pool.install(|| {
             (next_frame..next_frame + n_frames)
                 .into_par_iter()
                 .map(|i| Ok(simulate_frame(args.seed, i, i < requests, &cfg, args.points_cap, near, args.profile)?))
@@ -162,7 +163,7 @@ fn write_dataset_json(
     fixtures: usize,
     shards: &ShardWriter,
     report: &stats::Report,
-) -> anyhow::Result<()> {
+) -> crate::error::Result<()> {
     let doc = serde_json::json!({
         "version": SIM_VERSION,
         "profile": args.profile,

@@ -7,7 +7,7 @@
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
-use anyhow::Context;
+use crate::error::Context;
 use rayon::prelude::*;
 
 use super::range::{range_image_points, LaserCalibration, SweepPoses};
@@ -148,12 +148,12 @@ pub fn frame_points(
     lasers: &BTreeMap<i64, LaserCalibration>,
     f: &FrameData,
     compensate: bool,
-) -> anyhow::Result<Vec<[f32; 3]>> {
+) -> crate::error::Result<Vec<[f32; 3]>> {
     let mut out = Vec::new();
     for l in &f.lasers {
         let cal = lasers
             .get(&l.name)
-            .ok_or_else(|| anyhow::anyhow!("component `lidar_calibration`: no row for laser {}", l.name))?;
+            .ok_or_else(|| crate::invalid!("component `lidar_calibration`: no row for laser {}", l.name))?;
         for ri in &l.returns {
             let poses = match (compensate && l.name == LASER_TOP, &l.pixel_poses, &f.vehicle_pose) {
                 (true, Some(p), Some(v)) => Some(SweepPoses { pixel_poses: p, frame_pose: v }),
@@ -240,7 +240,7 @@ fn process_frame(
     index: usize,
     o: &ConvertOptions,
     cfg: &PipelineConfig,
-) -> anyhow::Result<FrameOut> {
+) -> crate::error::Result<FrameOut> {
     let points = frame_points(seg.lasers, f, true)?;
     let sensor = sensor_position(seg.lasers);
     let mut out = FrameOut { samples: Vec::new(), fixtures: Vec::new() };
@@ -348,12 +348,12 @@ pub struct ConvertSummary {
 const CHUNK_FRAMES: usize = 4;
 
 /// Runs `posefuse waymo convert`.
-pub fn convert(o: &ConvertOptions) -> anyhow::Result<ConvertSummary> {
+pub fn convert(o: &ConvertOptions) -> crate::error::Result<ConvertSummary> {
     let started = std::time::Instant::now();
     let cfg = PipelineConfig::with_image_size(o.image_size).in_frame(o.frame);
-    cfg.validate().map_err(|e| anyhow::anyhow!("--image-size {}: {e}", o.image_size))?;
+    cfg.validate().map_err(|e| crate::invalid!("--image-size {}: {e}", o.image_size))?;
     let mut names = super::segments::segments_in(&o.dataset)?;
-    anyhow::ensure!(!names.is_empty(), "{}: no segments (no lidar/*.parquet)", o.dataset.display());
+    crate::ensure!(!names.is_empty(), "{}: no segments (no lidar/*.parquet)", o.dataset.display());
     if let Some(n) = o.segments {
         names.truncate(n);
     }
@@ -361,7 +361,8 @@ pub fn convert(o: &ConvertOptions) -> anyhow::Result<ConvertSummary> {
     if o.requests {
         std::fs::create_dir_all(o.out.join("requests"))?;
     }
-    let pool = rayon::ThreadPoolBuilder::new().num_threads(o.jobs.unwrap_or(0)).build()?;
+    let pool =
+        rayon::ThreadPoolBuilder::new().num_threads(o.jobs.unwrap_or(0)).build().context("the worker threads")?;
     let mut shards = ShardWriter::new(&o.out.join("shards"), &cfg, o.points_cap);
     let mut sum = ConvertSummary { segments: names.len(), ..Default::default() };
     let bar = indicatif::ProgressBar::new(0);
@@ -379,7 +380,7 @@ pub fn convert(o: &ConvertOptions) -> anyhow::Result<ConvertSummary> {
             .iter()
             .map(|(n, c)| Camera::from_calibration(c).map(|cam| (*n, cam)))
             .collect::<posefuse_core::Result<_>>()
-            .map_err(|e| anyhow::anyhow!("segment {name}: component `camera_calibration`: {e}"))?;
+            .map_err(|e| crate::invalid!("segment {name}: component `camera_calibration`: {e}"))?;
         bar.inc_length(seg.timestamps.len() as u64);
         bar.set_message(name.clone());
         let timestamps = seg.timestamps.clone();
@@ -396,7 +397,7 @@ pub fn convert(o: &ConvertOptions) -> anyhow::Result<ConvertSummary> {
             }
             let segr = SegmentInfo { name, lasers: &seg.lasers };
             let segr = &segr;
-            let outs: Vec<anyhow::Result<FrameOut>> = pool.install(|| {
+            let outs: Vec<crate::error::Result<FrameOut>> = pool.install(|| {
                 batch.par_iter().map(|(d, l, i)| process_frame(segr, &cameras, d, l, *i, o, &cfg)).collect()
             });
             for r in outs {

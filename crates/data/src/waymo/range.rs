@@ -5,7 +5,7 @@
 //! poses (TOP), each pixel's vehicle pose at the moment it was measured takes the point to the
 //! world and the frame's `vehicle_pose` back to the vehicle frame at the frame's timestamp.
 
-use anyhow::ensure;
+use crate::ensure;
 
 pub use posefuse_core::geometry::rigid::{apply, mat4, mul, rigid_inverse, Mat4};
 
@@ -18,7 +18,7 @@ pub struct RangeImage {
 
 impl RangeImage {
     /// Builds one from the parquet `values` and `shape` columns, checking they agree.
-    pub fn new(values: Vec<f32>, shape: &[i64]) -> anyhow::Result<RangeImage> {
+    pub fn new(values: Vec<f32>, shape: &[i64]) -> crate::error::Result<RangeImage> {
         ensure!(shape.len() == 3 && shape.iter().all(|&s| s > 0), "range image shape {shape:?} is not [H, W, C]");
         let shape = [shape[0] as usize, shape[1] as usize, shape[2] as usize];
         ensure!(
@@ -57,7 +57,7 @@ pub struct LaserCalibration {
 }
 
 /// The inclination of each row (row 0 highest).
-pub fn row_inclinations(cal: &LaserCalibration, height: usize) -> anyhow::Result<Vec<f64>> {
+pub fn row_inclinations(cal: &LaserCalibration, height: usize) -> crate::error::Result<Vec<f64>> {
     if !cal.inclinations.is_empty() {
         ensure!(
             cal.inclinations.len() == height,
@@ -115,7 +115,7 @@ pub fn range_image_points(
     ri: &RangeImage,
     cal: &LaserCalibration,
     poses: Option<SweepPoses<'_>>,
-) -> anyhow::Result<Vec<[f32; 3]>> {
+) -> crate::error::Result<Vec<[f32; 3]>> {
     let mut out = Vec::with_capacity(ri.height() * ri.width() / 2);
     convert_pixels(ri, cal, poses, |_, _, p| out.push(p))?;
     Ok(out)
@@ -126,7 +126,7 @@ pub fn range_image_pixels(
     ri: &RangeImage,
     cal: &LaserCalibration,
     poses: Option<SweepPoses<'_>>,
-) -> anyhow::Result<Vec<(usize, usize, [f32; 3])>> {
+) -> crate::error::Result<Vec<(usize, usize, [f32; 3])>> {
     let mut out = Vec::new();
     convert_pixels(ri, cal, poses, |r, c, p| out.push((r, c, p)))?;
     Ok(out)
@@ -137,7 +137,7 @@ fn convert_pixels(
     cal: &LaserCalibration,
     poses: Option<SweepPoses<'_>>,
     mut emit: impl FnMut(usize, usize, [f32; 3]),
-) -> anyhow::Result<()> {
+) -> crate::error::Result<()> {
     let (h, w) = (ri.height(), ri.width());
     let incl = row_inclinations(cal, h)?;
     let az = column_azimuths(&cal.extrinsic, w);

@@ -11,7 +11,8 @@ use std::collections::{BTreeMap, HashMap};
 use std::fs::File;
 use std::path::{Path, PathBuf};
 
-use anyhow::{anyhow, ensure, Context};
+use crate::error::Context;
+use crate::{ensure, invalid};
 use parquet::arrow::arrow_reader::{ParquetRecordBatchReader, ParquetRecordBatchReaderBuilder};
 use parquet::arrow::ProjectionMask;
 
@@ -28,13 +29,13 @@ fn exists(root: &Path, component: &str, segment: &str) -> bool {
     component_path(root, component, segment).is_file()
 }
 
-fn require(root: &Path, component: &str, segment: &str) -> anyhow::Result<PathBuf> {
+fn require(root: &Path, component: &str, segment: &str) -> crate::error::Result<PathBuf> {
     let p = component_path(root, component, segment);
     ensure!(p.is_file(), "segment {segment}: component `{component}` is missing ({} not found)", p.display());
     Ok(p)
 }
 
-fn transform(v: &[f64], what: &str) -> anyhow::Result<Mat4> {
+fn transform(v: &[f64], what: &str) -> crate::error::Result<Mat4> {
     ensure!(v.len() == 16, "{what}: {} numbers, not 16", v.len());
     Ok(mat4(&std::array::from_fn(|i| v[i])))
 }
@@ -103,7 +104,7 @@ impl Stream {
         name_col: &'static str,
         names: &'static [&'static str],
         values: &[&str],
-    ) -> anyhow::Result<Stream> {
+    ) -> crate::error::Result<Stream> {
         let keys = read_columns(path, component, &[key::TIMESTAMP], None)?;
         let mut expected = HashMap::new();
         for ts in keys.i64s(key::TIMESTAMP)? {
@@ -119,7 +120,7 @@ impl Stream {
                 fields
                     .iter()
                     .position(|f| f.name() == c)
-                    .ok_or_else(|| anyhow!("component `{component}` ({}): no column `{c}`", path.display()))?,
+                    .ok_or_else(|| invalid!("component `{component}` ({}): no column `{c}`", path.display()))?,
             );
         }
         let mask = ProjectionMask::roots(b.parquet_schema(), roots);
@@ -128,13 +129,13 @@ impl Stream {
     }
 
     /// All rows of timestamp `ts` (name, table, row), reading ahead as needed.
-    fn take(&mut self, ts: i64) -> anyhow::Result<Vec<(i64, Table, usize)>> {
+    fn take(&mut self, ts: i64) -> crate::error::Result<Vec<(i64, Table, usize)>> {
         let want = self.expected.get(&ts).copied().unwrap_or(0);
         while self.pending.get(&ts).map_or(0, Vec::len) < want {
             let batch = self
                 .reader
                 .next()
-                .ok_or_else(|| anyhow!("component `{}`: rows of frame {ts} missing", self.component))?
+                .ok_or_else(|| invalid!("component `{}`: rows of frame {ts} missing", self.component))?
                 .with_context(|| format!("component `{}`: decoding", self.component))?;
             let t = Table { component: self.component.to_owned(), batch };
             let tss = t.i64s(key::TIMESTAMP)?;
@@ -170,7 +171,7 @@ pub type CameraFilter = Option<Vec<i64>>;
 
 impl Segment {
     /// Opens a segment: reads the small components, indexes the large ones.
-    pub fn open(root: &Path, name: &str, cameras_wanted: &CameraFilter) -> anyhow::Result<Segment> {
+    pub fn open(root: &Path, name: &str, cameras_wanted: &CameraFilter) -> crate::error::Result<Segment> {
         let lidar_path = require(root, comp::LIDAR, name)?;
         let lcal = read_columns(
             &require(root, comp::LIDAR_CALIBRATION, name)?,
@@ -228,7 +229,8 @@ impl Segment {
                 None,
             )?;
             let names = t.enums(key::CAMERA, &CAMERA_NAMES)?;
-            let intr: Vec<Vec<f64>> = col::CAM_INTRINSIC.iter().map(|c| t.f64s(c)).collect::<anyhow::Result<_>>()?;
+            let intr: Vec<Vec<f64>> =
+                col::CAM_INTRINSIC.iter().map(|c| t.f64s(c)).collect::<crate::error::Result<_>>()?;
             let (ext, w, h) = (t.f64_lists(col::CAM_EXTRINSIC)?, t.i64s(col::CAM_WIDTH)?, t.i64s(col::CAM_HEIGHT)?);
             for i in 0..t.rows() {
                 if cameras_wanted.as_ref().is_some_and(|c| !c.contains(&names[i])) {
@@ -300,7 +302,7 @@ impl Segment {
 
     /// The sensor data of frame `ts`; call in time order for bounded memory. `images`: which
     /// cameras' images to keep (the others are read past).
-    pub fn frame(&mut self, ts: i64, images: &[i64]) -> anyhow::Result<FrameData> {
+    pub fn frame(&mut self, ts: i64, images: &[i64]) -> crate::error::Result<FrameData> {
         let mut lasers = Vec::new();
         let mut poses: HashMap<i64, RangeImage> = HashMap::new();
         if let Some(s) = self.lidar_pose.as_mut() {
@@ -312,7 +314,7 @@ impl Segment {
             }
         }
         for (n, t, i) in self.lidar.take(ts)? {
-            let ri = |vc: &str, sc: &str| -> anyhow::Result<RangeImage> {
+            let ri = |vc: &str, sc: &str| -> crate::error::Result<RangeImage> {
                 let v = t.f32_lists(vc)?.swap_remove(i);
                 let shape = t.i64_lists(sc)?.swap_remove(i);
                 RangeImage::new(v, &shape).with_context(|| format!("component `lidar`: `{vc}` of laser {n} at {ts}"))
@@ -338,7 +340,7 @@ fn read_labels(
     root: &Path,
     name: &str,
     cameras: &BTreeMap<i64, CameraCalibration>,
-) -> anyhow::Result<HashMap<i64, FrameLabels>> {
+) -> crate::error::Result<HashMap<i64, FrameLabels>> {
     let mut labels: HashMap<i64, FrameLabels> = HashMap::new();
     let t = read_columns(
         &require(root, comp::LIDAR_BOX, name)?,
@@ -362,7 +364,7 @@ fn read_labels(
         [col::LBOX_CX, col::LBOX_CY, col::LBOX_CZ, col::LBOX_SX, col::LBOX_SY, col::LBOX_SZ, col::LBOX_HEADING]
             .iter()
             .map(|c| t.f64s(c))
-            .collect::<anyhow::Result<_>>()?;
+            .collect::<crate::error::Result<_>>()?;
     for i in 0..t.rows() {
         if kind[i] != TYPE_PEDESTRIAN {
             continue;
@@ -441,7 +443,7 @@ fn read_labels(
     let g: Vec<Vec<f64>> = [col::CBOX_CX, col::CBOX_CY, col::CBOX_SX, col::CBOX_SY]
         .iter()
         .map(|c| t.f64s(c))
-        .collect::<anyhow::Result<_>>()?;
+        .collect::<crate::error::Result<_>>()?;
     let mut assoc: HashMap<(i64, i64, String), String> = HashMap::new();
     if exists(root, comp::ASSOCIATION, name) {
         let a = read_columns(

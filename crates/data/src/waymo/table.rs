@@ -8,7 +8,8 @@ use std::fs::File;
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use anyhow::{anyhow, bail, Context};
+use crate::error::Context;
+use crate::{bail, invalid};
 use arrow_array::builder::{
     BooleanBuilder, FixedSizeListBuilder, Float32Builder, Float64Builder, Int32Builder, Int64Builder, Int8Builder,
     ListBuilder,
@@ -92,47 +93,47 @@ fn list_items(a: &dyn Array, i: usize) -> Option<ArrayRef> {
 
 impl Table {
     /// A column by name, or an error naming the component and the column.
-    pub fn column(&self, name: &str) -> anyhow::Result<&ArrayRef> {
-        self.batch.column_by_name(name).ok_or_else(|| anyhow!("component `{}`: no column `{name}`", self.component))
+    pub fn column(&self, name: &str) -> crate::error::Result<&ArrayRef> {
+        self.batch.column_by_name(name).ok_or_else(|| invalid!("component `{}`: no column `{name}`", self.component))
     }
 
     pub fn rows(&self) -> usize {
         self.batch.num_rows()
     }
 
-    fn bad(&self, name: &str, what: &str) -> anyhow::Error {
+    fn bad(&self, name: &str, what: &str) -> crate::error::DataError {
         let dt = self.batch.column_by_name(name).map(|c| c.data_type().to_string()).unwrap_or_default();
-        anyhow!("component `{}`: column `{name}` has type {dt}, not {what}", self.component)
+        invalid!("component `{}`: column `{name}` has type {dt}, not {what}", self.component)
     }
 
-    fn no_nulls<T>(&self, name: &str, v: Vec<Option<T>>) -> anyhow::Result<Vec<T>> {
+    fn no_nulls<T>(&self, name: &str, v: Vec<Option<T>>) -> crate::error::Result<Vec<T>> {
         v.into_iter()
             .enumerate()
             .map(|(i, x)| {
-                x.ok_or_else(|| anyhow!("component `{}`: column `{name}` is null in row {i}", self.component))
+                x.ok_or_else(|| invalid!("component `{}`: column `{name}` is null in row {i}", self.component))
             })
             .collect()
     }
 
     /// Integers of any width.
-    pub fn i64s(&self, name: &str) -> anyhow::Result<Vec<i64>> {
+    pub fn i64s(&self, name: &str) -> crate::error::Result<Vec<i64>> {
         let v = ints(self.column(name)?.as_ref()).ok_or_else(|| self.bad(name, "an integer"))?;
         self.no_nulls(name, v)
     }
 
     /// Reals (float, double or integer).
-    pub fn f64s(&self, name: &str) -> anyhow::Result<Vec<f64>> {
+    pub fn f64s(&self, name: &str) -> crate::error::Result<Vec<f64>> {
         let v = reals(self.column(name)?.as_ref()).ok_or_else(|| self.bad(name, "a number"))?;
         self.no_nulls(name, v)
     }
 
-    pub fn strings(&self, name: &str) -> anyhow::Result<Vec<String>> {
+    pub fn strings(&self, name: &str) -> crate::error::Result<Vec<String>> {
         let v = strings(self.column(name)?.as_ref()).ok_or_else(|| self.bad(name, "a string"))?;
         self.no_nulls(name, v)
     }
 
     /// An enum stored as an integer or as its name (`"FRONT"`); `names` in enum order from 1.
-    pub fn enums(&self, name: &str, names: &[&str]) -> anyhow::Result<Vec<i64>> {
+    pub fn enums(&self, name: &str, names: &[&str]) -> crate::error::Result<Vec<i64>> {
         let col = self.column(name)?.as_ref();
         if let Some(v) = ints(col) {
             return self.no_nulls(name, v);
@@ -142,13 +143,13 @@ impl Table {
             .iter()
             .map(|s| {
                 super::schema::name_value(names, s).ok_or_else(|| {
-                    anyhow!("component `{}`: column `{name}`: unknown name {s:?} (one of {names:?})", self.component)
+                    invalid!("component `{}`: column `{name}`: unknown name {s:?} (one of {names:?})", self.component)
                 })
             })
             .collect()
     }
 
-    pub fn binaries(&self, name: &str) -> anyhow::Result<Vec<Vec<u8>>> {
+    pub fn binaries(&self, name: &str) -> crate::error::Result<Vec<Vec<u8>>> {
         let a = self.column(name)?.as_ref();
         let v: Vec<Option<Vec<u8>>> = match a.data_type() {
             DataType::Binary => a.as_binary::<i32>().iter().map(|b| b.map(<[u8]>::to_vec)).collect(),
@@ -164,7 +165,7 @@ impl Table {
         name: &str,
         item: impl Fn(&dyn Array) -> Option<Vec<T>>,
         what: &str,
-    ) -> anyhow::Result<Vec<Vec<T>>> {
+    ) -> crate::error::Result<Vec<Vec<T>>> {
         let a = self.column(name)?.as_ref();
         (0..a.len())
             .map(|i| {
@@ -178,7 +179,7 @@ impl Table {
     }
 
     /// Lists of reals (null items as NaN).
-    pub fn f64_lists(&self, name: &str) -> anyhow::Result<Vec<Vec<f64>>> {
+    pub fn f64_lists(&self, name: &str) -> crate::error::Result<Vec<Vec<f64>>> {
         self.lists(
             name,
             |a| reals(a).map(|v| v.into_iter().map(|x| x.unwrap_or(f64::NAN)).collect()),
@@ -187,15 +188,15 @@ impl Table {
     }
 
     /// Lists of reals as f32 (range images).
-    pub fn f32_lists(&self, name: &str) -> anyhow::Result<Vec<Vec<f32>>> {
+    pub fn f32_lists(&self, name: &str) -> crate::error::Result<Vec<Vec<f32>>> {
         self.lists(name, reals32, "a list of numbers")
     }
 
-    pub fn i64_lists(&self, name: &str) -> anyhow::Result<Vec<Vec<i64>>> {
+    pub fn i64_lists(&self, name: &str) -> crate::error::Result<Vec<Vec<i64>>> {
         self.lists(name, |a| ints(a).map(|v| v.into_iter().map(|x| x.unwrap_or(-1)).collect()), "a list of integers")
     }
 
-    pub fn bool_lists(&self, name: &str) -> anyhow::Result<Vec<Vec<bool>>> {
+    pub fn bool_lists(&self, name: &str) -> crate::error::Result<Vec<Vec<bool>>> {
         self.lists(name, bools, "a list of booleans")
     }
 }
@@ -212,7 +213,7 @@ pub fn read_columns(
     component: &str,
     columns: &[&str],
     row_groups: Option<Vec<usize>>,
-) -> anyhow::Result<Table> {
+) -> crate::error::Result<Table> {
     let file = File::open(path).with_context(|| format!("component `{component}`: {}", path.display()))?;
     let mut b = ParquetRecordBatchReaderBuilder::try_new(file)
         .with_context(|| format!("component `{component}`: reading {}", path.display()))?;
@@ -222,7 +223,7 @@ pub fn read_columns(
         let i = fields
             .iter()
             .position(|f| f.name() == c)
-            .ok_or_else(|| anyhow!("component `{component}` ({}): no column `{c}`", path.display()))?;
+            .ok_or_else(|| invalid!("component `{component}` ({}): no column `{c}`", path.display()))?;
         roots.push(i);
     }
     let mask = ProjectionMask::roots(b.parquet_schema(), roots);
@@ -240,7 +241,7 @@ pub fn read_columns(
     Ok(Table { component: component.to_owned(), batch })
 }
 
-fn arrow_select_concat(schema: &arrow_schema::SchemaRef, batches: &[RecordBatch]) -> anyhow::Result<RecordBatch> {
+fn arrow_select_concat(schema: &arrow_schema::SchemaRef, batches: &[RecordBatch]) -> crate::error::Result<RecordBatch> {
     match batches {
         [] => Ok(RecordBatch::new_empty(schema.clone())),
         [one] => Ok(one.clone()),
@@ -249,7 +250,7 @@ fn arrow_select_concat(schema: &arrow_schema::SchemaRef, batches: &[RecordBatch]
 }
 
 /// The number of row groups of a parquet file.
-pub fn row_groups(path: &Path, component: &str) -> anyhow::Result<usize> {
+pub fn row_groups(path: &Path, component: &str) -> crate::error::Result<usize> {
     let file = File::open(path).with_context(|| format!("component `{component}`: {}", path.display()))?;
     let b = ParquetRecordBatchReaderBuilder::try_new(file)
         .with_context(|| format!("component `{component}`: reading {}", path.display()))?;
@@ -429,7 +430,7 @@ impl Columns {
         self.push(name, Arc::new(b.finish()));
     }
 
-    pub fn finish(self) -> anyhow::Result<RecordBatch> {
+    pub fn finish(self) -> crate::error::Result<RecordBatch> {
         Ok(RecordBatch::try_from_iter(self.cols)?)
     }
 }
@@ -441,7 +442,7 @@ pub struct ComponentWriter {
 }
 
 impl ComponentWriter {
-    pub fn new(root: &Path, component: &str, segment: &str) -> anyhow::Result<ComponentWriter> {
+    pub fn new(root: &Path, component: &str, segment: &str) -> crate::error::Result<ComponentWriter> {
         let path = component_path(root, component, segment);
         if let Some(dir) = path.parent() {
             std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
@@ -449,13 +450,13 @@ impl ComponentWriter {
         Ok(ComponentWriter { path, writer: None })
     }
 
-    pub fn write(&mut self, batch: &RecordBatch) -> anyhow::Result<()> {
+    pub fn write(&mut self, batch: &RecordBatch) -> crate::error::Result<()> {
         if self.writer.is_none() {
             let file = File::create(&self.path).with_context(|| format!("creating {}", self.path.display()))?;
             let props = WriterProperties::builder().set_compression(Compression::SNAPPY).build();
             self.writer = Some(ArrowWriter::try_new(file, batch.schema(), Some(props))?);
         }
-        let w = self.writer.as_mut().ok_or_else(|| anyhow!("writer"))?;
+        let w = self.writer.as_mut().ok_or_else(|| invalid!("writer"))?;
         if batch.num_rows() == 0 {
             return Ok(());
         }
@@ -464,7 +465,7 @@ impl ComponentWriter {
         Ok(())
     }
 
-    pub fn finish(self) -> anyhow::Result<()> {
+    pub fn finish(self) -> crate::error::Result<()> {
         match self.writer {
             Some(w) => {
                 w.close().with_context(|| format!("closing {}", self.path.display()))?;

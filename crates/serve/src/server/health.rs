@@ -4,7 +4,7 @@
 use std::net::{IpAddr, Ipv4Addr, Ipv6Addr, SocketAddr};
 use std::time::Duration;
 
-use anyhow::Context;
+use posefuse_core::error::{Error, Result};
 use tonic_health::pb::health_check_response::ServingStatus;
 use tonic_health::pb::health_client::HealthClient;
 use tonic_health::pb::HealthCheckRequest;
@@ -21,17 +21,18 @@ pub fn connect_addr(listen: SocketAddr) -> SocketAddr {
 /// The overall status ("" service) of the server at `addr` (a connectable address, see
 /// [`connect_addr`]): SERVING once the bundle is loaded and warmed up, NOT_SERVING while it warms
 /// up or shuts down.
-pub async fn check(addr: SocketAddr, timeout: Duration) -> anyhow::Result<ServingStatus> {
-    let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))?
+pub async fn check(addr: SocketAddr, timeout: Duration) -> Result<ServingStatus> {
+    let channel = tonic::transport::Endpoint::from_shared(format!("http://{addr}"))
+        .map_err(|e| Error::Unavailable(format!("no endpoint for {addr}: {e}")))?
         .connect_timeout(timeout)
         .timeout(timeout)
         .connect()
         .await
-        .with_context(|| format!("cannot connect to {addr}"))?;
+        .map_err(|e| Error::Unavailable(format!("cannot connect to {addr}: {e}")))?;
     let response = HealthClient::new(channel)
         .check(HealthCheckRequest { service: String::new() })
         .await
-        .map_err(|e| anyhow::anyhow!("health check at {addr} failed: {}", e.message()))?;
+        .map_err(|e| Error::Unavailable(format!("health check at {addr} failed: {}", e.message())))?;
     Ok(ServingStatus::try_from(response.into_inner().status).unwrap_or(ServingStatus::Unknown))
 }
 

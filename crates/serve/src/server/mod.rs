@@ -320,7 +320,7 @@ pub async fn shutdown_signal() {
 
 /// `posefuse serve` after parsing: SIGHUP reloads (handled before loading, so that an early one
 /// does not kill the process), SIGTERM/Ctrl-C drains; a completed drain exits 0.
-pub async fn serve_with_signals(mut config: ServerConfig, addr: SocketAddr) -> anyhow::Result<()> {
+pub async fn serve_with_signals(mut config: ServerConfig, addr: SocketAddr) -> Result<()> {
     let (set_reloader, reloader) = tokio::sync::watch::channel(None);
     #[cfg(unix)]
     lifecycle::reload_on_hangup(reloader)?;
@@ -343,13 +343,14 @@ pub async fn serve_with_signals(mut config: ServerConfig, addr: SocketAddr) -> a
         "sizing"
     );
     let listener =
-        tokio::net::TcpListener::bind(addr).await.map_err(|e| anyhow::anyhow!("cannot listen on {addr}: {e}"))?;
+        tokio::net::TcpListener::bind(addr).await.map_err(|e| Error::Io(format!("cannot listen on {addr}: {e}")))?;
     let admin_listener = match config.admin.addr {
         Some(a) => {
             if !a.ip().is_loopback() {
                 tracing::warn!(addr = %a, "the admin address is not loopback: anyone who reaches it can reload models");
             }
-            let l = tokio::net::TcpListener::bind(a).await.map_err(|e| anyhow::anyhow!("cannot listen on {a}: {e}"))?;
+            let l =
+                tokio::net::TcpListener::bind(a).await.map_err(|e| Error::Io(format!("cannot listen on {a}: {e}")))?;
             Some(l)
         }
         None => None,

@@ -8,8 +8,8 @@ use std::io::{BufReader, Read};
 use std::path::PathBuf;
 use std::time::Duration;
 
-use anyhow::Context;
 use futures::StreamExt;
+use posefuse_data::error::Context;
 
 use super::viz::{image_annotations, scene_update};
 use crate::waymo_score::Scorer;
@@ -135,7 +135,7 @@ impl<'a> Router<'a> {
         }
     }
 
-    fn role(&mut self, ch: &mcap::Channel) -> anyhow::Result<Role> {
+    fn role(&mut self, ch: &mcap::Channel) -> posefuse_data::error::Result<Role> {
         if let Some(r) = self.roles.get(&ch.id) {
             return Ok(*r);
         }
@@ -157,7 +157,7 @@ impl<'a> Router<'a> {
         Ok(r)
     }
 
-    fn decide(&mut self, ch: &mcap::Channel) -> anyhow::Result<Role> {
+    fn decide(&mut self, ch: &mcap::Channel) -> posefuse_data::error::Result<Role> {
         let topic = ch.topic.as_str();
         let schema_name = ch.schema.as_ref().map_or("", |s| s.name.as_str());
         let named = |list: &[String]| list.iter().any(|t| t == topic);
@@ -182,7 +182,7 @@ impl<'a> Router<'a> {
             schema::DETECTION3D_ARRAY if self.boxes.as_deref().is_none_or(|t| t == topic) => Role::Boxes,
             schema::TF_MESSAGE if topic == self.o.tf_topic => Role::Tf,
             _ if explicit => {
-                anyhow::bail!("topic {topic}: schema `{schema_name}` is not the message type its flag reads")
+                posefuse_data::bail!("topic {topic}: schema `{schema_name}` is not the message type its flag reads")
             }
             _ => Role::Ignored,
         };
@@ -190,13 +190,17 @@ impl<'a> Router<'a> {
             return Ok(role);
         }
         if ch.message_encoding != "cdr" {
-            anyhow::ensure!(!explicit, "topic {topic}: message encoding `{}` is not ROS 2's cdr", ch.message_encoding);
+            posefuse_data::ensure!(
+                !explicit,
+                "topic {topic}: message encoding `{}` is not ROS 2's cdr",
+                ch.message_encoding
+            );
             return Ok(Role::Ignored);
         }
         if role == Role::Boxes {
             let text = ch.schema.as_ref().map(|s| String::from_utf8_lossy(&s.data).into_owned()).unwrap_or_default();
             if !detection_layout_supported(&text) {
-                anyhow::ensure!(!explicit, "topic {topic}: this vision_msgs Detection3D layout is not read (vision_msgs 4, ROS 2 Humble and later, is)");
+                posefuse_data::ensure!(!explicit, "topic {topic}: this vision_msgs Detection3D layout is not read (vision_msgs 4, ROS 2 Humble and later, is)");
                 return Ok(Role::Ignored);
             }
         }
@@ -245,7 +249,7 @@ fn read_log(
     o: &McapScoreOptions,
     bar: indicatif::ProgressBar,
     jobs: tokio::sync::mpsc::Sender<Job>,
-) -> anyhow::Result<ReadReport> {
+) -> posefuse_data::error::Result<ReadReport> {
     let file = std::fs::File::open(&o.input).with_context(|| format!("opening {}", o.input.display()))?;
     let source = Progress { inner: BufReader::with_capacity(1 << 20, file), bar };
     let options = mcap::sans_io::LinearReaderOptions::default().with_record_length_limit(MAX_RECORD_BYTES);
@@ -354,7 +358,7 @@ fn read_log(
 
 /// The JSON Schema of the poses channel: the response's schema and those it refers to, from the
 /// OpenAPI document, its references moved from `#/components/schemas` to `$defs`.
-pub fn poses_json_schema() -> anyhow::Result<Vec<u8>> {
+pub fn poses_json_schema() -> posefuse_data::error::Result<Vec<u8>> {
     const REF: &str = "#/components/schemas/";
     let doc = serde_json::to_value(posefuse_serve::server::http::openapi_doc())?;
     let all = doc.pointer("/components/schemas").and_then(|v| v.as_object()).cloned().unwrap_or_default();
@@ -376,9 +380,9 @@ pub fn poses_json_schema() -> anyhow::Result<Vec<u8>> {
 }
 
 /// Runs `posefuse mcap score`.
-pub async fn score(scorer: &Scorer<'_>, o: &McapScoreOptions) -> anyhow::Result<McapScoreSummary> {
+pub async fn score(scorer: &Scorer<'_>, o: &McapScoreOptions) -> posefuse_data::error::Result<McapScoreSummary> {
     let started = std::time::Instant::now();
-    anyhow::ensure!(o.sync_ms >= 0.0 && o.sync_ms.is_finite(), "--sync-ms must be a non-negative number");
+    posefuse_data::ensure!(o.sync_ms >= 0.0 && o.sync_ms.is_finite(), "--sync-ms must be a non-negative number");
     let size = std::fs::metadata(&o.input).with_context(|| format!("reading {}", o.input.display()))?.len();
     let bar = indicatif::ProgressBar::new(size).with_style(
         indicatif::ProgressStyle::with_template("{bar:40} {bytes}/{total_bytes} {msg} ({eta})")
@@ -444,7 +448,7 @@ pub async fn score(scorer: &Scorer<'_>, o: &McapScoreOptions) -> anyhow::Result<
         log.foxglove(SKELETONS_TOPIC, stamp_ns, &scene_update(stamp_ns, &base, &persons))?;
         bar.set_message(format!("{} frames, {} persons", sum.frames, sum.persons));
     }
-    let report = reader.join().map_err(|_| anyhow::anyhow!("the log reader panicked"))??;
+    let report = reader.join().map_err(|_| posefuse_data::invalid!("the log reader panicked"))??;
     bar.finish_and_clear();
     sum.messages = report.messages;
     sum.messages_skipped = report.messages_skipped;
