@@ -756,3 +756,48 @@ async fn a_refused_body_is_read_no_further_than_the_body_limit() {
     assert_eq!(first.await.unwrap().unwrap(), 200);
     s.shutdown().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn every_transport_refuses_a_frame_before_reading_it_when_the_server_is_full() {
+    use posefuse::server::grpc::proto::posefuse_client::PosefuseClient;
+    use posefuse::server::kserve::grpc::proto::{
+        grpc_inference_service_client::GrpcInferenceServiceClient, ModelInferRequest,
+    };
+    let (s, pause, first) = full_server(config()).await;
+    let http = reqwest::Client::new();
+    // Bodies that would be 400 if they were read: the 429 shows they were not.
+    for path in ["/v1/poses", "/v2/models/default/infer", "/v2/models/default/versions/9/infer"] {
+        let r = http.post(s.url(path)).header("content-type", "application/json").body("{not json").send().await;
+        let r = r.unwrap();
+        assert_eq!(r.status().as_u16(), 429, "{path}");
+        assert_eq!(r.headers().get("retry-after").map(|v| v.to_str().unwrap().to_string()), Some("1".into()));
+        let body: Value = r.json().await.unwrap();
+        let shape_ok =
+            if path.starts_with("/v2") { body["error"].is_string() } else { body["error"]["code"] == "overloaded" };
+        assert!(shape_ok, "{path}: {body}");
+    }
+    // gRPC: messages that would be INVALID_ARGUMENT if they were read.
+    let mut native = PosefuseClient::connect(s.url("")).await.unwrap();
+    let e = native.predict(posefuse::server::grpc::proto::PredictRequest::default()).await.unwrap_err();
+    assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{e:?}");
+    let mut v2 = GrpcInferenceServiceClient::connect(s.url("")).await.unwrap();
+    let e = v2.model_infer(ModelInferRequest::default()).await.unwrap_err();
+    assert_eq!(e.code(), tonic::Code::ResourceExhausted, "{e:?}");
+    // Batches: each frame is admitted before it is parsed, so even the malformed one is refused.
+    let (status, items) = post(&s, "/v1/poses:batch", &json!([frame_json(), {"points": 3}])).await;
+    assert_eq!(status, 200);
+    let codes: Vec<&str> = items.as_array().unwrap().iter().map(|i| i["error"]["code"].as_str().unwrap()).collect();
+    assert_eq!(codes, ["overloaded", "overloaded"], "{items}");
+    let lines = s.post_ndjson("{not json\n".into()).await.text().await.unwrap();
+    assert!(lines.contains("\"overloaded\""), "{lines}");
+    // Routes that carry no frame are not admitted: they answer while the server is full.
+    assert_eq!(http.get(s.url("/v2/models/default")).send().await.unwrap().status().as_u16(), 200);
+    drop(pause);
+    assert_eq!(first.await.unwrap().unwrap(), 200);
+    // With room again the same bodies are read, and refused for what they are.
+    let r = http.post(s.url("/v2/models/default/infer")).body("{not json").send().await.unwrap();
+    assert_eq!(r.status().as_u16(), 400);
+    let e = v2.model_infer(ModelInferRequest::default()).await.unwrap_err();
+    assert_ne!(e.code(), tonic::Code::ResourceExhausted, "{e:?}");
+    s.shutdown().await.unwrap();
+}

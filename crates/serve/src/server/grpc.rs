@@ -304,15 +304,12 @@ pub const PREDICT_PATH: &str = "/posefuse.v1.Posefuse/Predict";
 async fn predict_message(
     state: &AppState,
     msg: proto::PredictRequest,
-    ticket: Option<&Ticket>,
+    early: Option<std::sync::Arc<Ticket>>,
 ) -> Result<proto::PredictResponse> {
     let (p, timeout) = (&state.predictor, state.request_timeout);
+    let ticket = p.admitted(early)?;
     let (frame, image) = frame_from_proto(msg)?;
-    let r = match ticket {
-        Some(t) => p.answer_admitted(t, frame, image, timeout).await,
-        None => p.answer(frame, image, timeout).await,
-    };
-    r.map(response_to_proto)
+    p.answer_admitted(&ticket, frame, image, timeout).await.map(response_to_proto)
 }
 
 fn count(method: &'static str, code: tonic::Code) {
@@ -327,8 +324,8 @@ impl Posefuse for GrpcService {
         &self,
         request: Request<proto::PredictRequest>,
     ) -> std::result::Result<Response<proto::PredictResponse>, Status> {
-        let ticket = request.extensions().get::<std::sync::Arc<Ticket>>().cloned();
-        let r = predict_message(&self.state, request.into_inner(), ticket.as_deref()).await;
+        let ticket = super::early_admission::ticket(request.extensions());
+        let r = predict_message(&self.state, request.into_inner(), ticket).await;
         count("Predict", r.as_ref().map_or_else(super::errors::grpc_code, |_| tonic::Code::Ok));
         r.map(Response::new).map_err(|e| grpc_status(&e))
     }

@@ -113,7 +113,7 @@ async fn parse_json_off_executor<T: DeserializeOwned + Send + 'static>(bytes: By
         .map_err(|e| Error::Runtime(format!("parse task failed: {e}")))?
 }
 
-fn bytes_rejection(r: &axum::extract::rejection::BytesRejection, limit: usize) -> Error {
+pub(super) fn bytes_rejection(r: &axum::extract::rejection::BytesRejection, limit: usize) -> Error {
     if r.status() == StatusCode::PAYLOAD_TOO_LARGE {
         Error::PayloadTooLarge { limit }
     } else {
@@ -140,42 +140,9 @@ fn check_json_content_type(headers: &HeaderMap) -> Result<()> {
     (status = 504, description = "Deadline passed", body = ErrorBody),
 ))]
 async fn poses(State(state): State<AppState>, req: Request) -> HttpResult<Json<PoseResponse>> {
-    // Admitted before the body is read: a full server answers 429 without reading or parsing.
-    let ticket = match state.predictor.admission().admit() {
-        Ok(ticket) => ticket,
-        Err(e) => {
-            discard_body(req, state.body_limit);
-            return Err(e.into());
-        }
-    };
+    let ticket = state.predictor.admitted(super::early_admission::ticket(req.extensions()))?;
     let ApiJson(frame) = ApiJson::<Frame>::from_request(req, &state).await?;
     Ok(state.predictor.answer_admitted(&ticket, frame, None, state.request_timeout).await.map(Json)?)
-}
-
-/// Reads and drops a refused request's body beside its early answer. Closing a connection with
-/// unread body bytes makes the kernel reset it, and a client still sending then sees a broken
-/// connection instead of the 429 (and must reconnect); read to its end, the connection stays
-/// usable. Bounded: at most `limit` bytes, each chunk within the body-read timeout. A client
-/// that asked `Expect: 100-continue` has not sent its body and never will: reading it would
-/// invite it to.
-fn discard_body(req: Request, limit: usize) {
-    let expects_continue = req
-        .headers()
-        .get(header::EXPECT)
-        .is_some_and(|v| v.to_str().is_ok_and(|v| v.eq_ignore_ascii_case("100-continue")));
-    if expects_continue {
-        return;
-    }
-    let mut body = req.into_body().into_data_stream();
-    tokio::spawn(async move {
-        let mut read = 0usize;
-        while let Some(Ok(chunk)) = body.next().await {
-            read += chunk.len();
-            if read > limit {
-                break;
-            }
-        }
-    });
 }
 
 /// Several frames: a JSON array in and out, or NDJSON (`Content-Type: application/x-ndjson`)
@@ -203,9 +170,8 @@ async fn batch(State(state): State<AppState>, req: Request) -> Response {
     let predictor = &state.predictor;
     let items: Vec<BatchItem> = futures::stream::iter(values.into_iter().enumerate())
         .map(|(i, v)| async move {
-            predictor
-                .answer_item(i, parse_json_off_executor::<Frame>(Bytes::from(v.get().to_owned())).await, timeout)
-                .await
+            let parse = async move { parse_json_off_executor::<Frame>(Bytes::from(v.get().to_owned())).await };
+            predictor.answer_item(i, parse, timeout).await
         })
         .buffered(concurrency)
         .collect()
@@ -226,7 +192,7 @@ fn ndjson_batch(state: AppState, body: Body) -> Response {
         .enumerate()
         .map(move |(i, line)| {
             let predictor = predictor.clone();
-            async move { predictor.answer_item(i, line.and_then(|l| parse_json::<Frame>(&l)), timeout).await }
+            async move { predictor.answer_item(i, async { parse_json::<Frame>(&line?) }, timeout).await }
         })
         .buffered(concurrency)
         .map(|it| {

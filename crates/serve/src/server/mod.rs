@@ -5,6 +5,7 @@
 
 pub mod admin;
 pub mod conn;
+pub mod early_admission;
 pub mod errors;
 pub mod grpc;
 pub mod health;
@@ -205,21 +206,18 @@ impl App {
         // One port: `Content-Type: application/grpc…` goes to tonic, everything else to the HTTP routes.
         let in_flight = Arc::new(lifecycle::InFlight::default());
         let admission = state.predictor.admission().clone();
+        let body_limit = state.body_limit;
         let app = axum::Router::new()
-            .fallback_service(tower::service_fn(move |mut req: Request| {
+            .fallback_service(tower::service_fn(move |req: Request| {
                 let (h, g) = (http_router.clone(), grpc_router.clone());
-                // A unary frame is admitted before its message is read (429 at once when full).
-                let admitted = (is_grpc(&req) && req.uri().path() == grpc::PREDICT_PATH).then(|| admission.admit());
+                let grpc = is_grpc(&req);
+                let admitted = early_admission::admit(&admission, req, grpc, body_limit);
                 async move {
-                    if let Some(admitted) = admitted {
-                        match admitted {
-                            Ok(ticket) => {
-                                req.extensions_mut().insert(Arc::new(ticket));
-                            }
-                            Err(e) => return Ok(errors::grpc_status(&e).into_http()),
-                        }
-                    }
-                    if is_grpc(&req) {
+                    let req = match admitted {
+                        Ok(req) => req,
+                        Err(refusal) => return Ok(*refusal),
+                    };
+                    if grpc {
                         if let Some(status) = kserve::grpc::unimplemented(req.uri().path()) {
                             return Ok(status.into_http());
                         }

@@ -235,10 +235,20 @@ impl Predictor {
         })
     }
 
-    /// Admits the frame, then [`Predictor::answer_admitted`]: what every transport calls.
+    /// Admits the frame, then [`Predictor::answer_admitted`]: for callers that hold the frame
+    /// already (the command line, tools, tests). The server admits before it reads a body.
     pub async fn answer(&self, frame: Frame, raw_images: Option<RawImages>, timeout: Duration) -> Result<PoseResponse> {
         let ticket = self.admission.admit()?;
         self.answer_admitted(&ticket, frame, raw_images, timeout).await
+    }
+
+    /// The ticket a request was admitted with before its body was read (the server's early
+    /// admission), or one taken now: every transport calls this before it parses a frame.
+    pub fn admitted(&self, early: Option<Arc<Ticket>>) -> Result<Arc<Ticket>> {
+        match early {
+            Some(ticket) => Ok(ticket),
+            None => self.admission.admit().map(Arc::new),
+        }
     }
 
     /// [`Predictor::predict_admitted`] with a deadline, counted in the metrics.
@@ -260,12 +270,20 @@ impl Predictor {
         r
     }
 
-    /// One item of a batch: the frame as parsed (or why it could not be), answered.
-    pub async fn answer_item(&self, index: usize, parsed: Result<Frame>, timeout: Duration) -> BatchItem {
-        match parsed {
-            Ok(frame) => BatchItem::new(index, self.answer(frame, None, timeout).await),
-            Err(e) => BatchItem::new(index, Err(e)),
-        }
+    /// One item of a batch or stream: admitted, then `parse`d (nothing is parsed for a frame the
+    /// server has no room for), then answered.
+    pub async fn answer_item(
+        &self,
+        index: usize,
+        parse: impl std::future::Future<Output = Result<Frame>>,
+        timeout: Duration,
+    ) -> BatchItem {
+        let answer = async {
+            let ticket = self.admission.admit()?;
+            let frame = parse.await?;
+            self.answer_admitted(&ticket, frame, None, timeout).await
+        };
+        BatchItem::new(index, answer.await)
     }
 }
 

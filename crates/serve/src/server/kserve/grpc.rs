@@ -86,6 +86,9 @@ fn model_config(name: String) -> proto::ModelConfig {
 pub const METHODS: [&str; 7] =
     ["ServerLive", "ServerReady", "ModelReady", "ServerMetadata", "ModelMetadata", "ModelInfer", "ModelConfig"];
 
+/// The path of `ModelInfer` (admitted before its message is read).
+pub const INFER_PATH: &str = "/inference.GRPCInferenceService/ModelInfer";
+
 /// The status for a call to a method of the service that is not among [`METHODS`]; `None` for
 /// other paths.
 pub fn unimplemented(path: &str) -> Option<Status> {
@@ -252,10 +255,13 @@ impl GrpcInferenceService for KserveService {
         &self,
         request: Request<proto::ModelInferRequest>,
     ) -> std::result::Result<Response<proto::ModelInferResponse>, Status> {
-        let result = match request_from_proto(request.into_inner()) {
-            Ok(req) => super::infer(&self.state, req).await.map(response_to_proto),
-            Err(e) => Err(e),
+        let early = crate::server::early_admission::ticket(request.extensions());
+        let result = async {
+            let ticket = self.state.predictor.admitted(early)?;
+            let req = request_from_proto(request.into_inner())?;
+            super::infer(&self.state, &ticket, req).await.map(response_to_proto)
         };
+        let result = result.await;
         answer("ModelInfer", result)
     }
 }

@@ -13,6 +13,7 @@ pub mod tensors;
 use std::sync::atomic::Ordering;
 
 use super::AppState;
+use crate::service::admission::Ticket;
 use posefuse_core::error::{Error, Result};
 use posefuse_core::image_decode::RawImages;
 use tensors::{InputTensor, OutputTensor, RequestedOutput};
@@ -71,16 +72,17 @@ pub struct InferResponse {
     pub outputs: Vec<(OutputTensor, bool)>,
 }
 
-/// Runs one inference: tensors → frame → `Predictor::predict` (with the server's deadline) →
-/// tensors. Errors name the tensor they come from.
-pub async fn infer(state: &AppState, req: InferRequest) -> Result<InferResponse> {
+/// Runs one inference: tensors → frame → `Predictor::answer_admitted` (with the server's
+/// deadline) → tensors, on the ticket the request was admitted with. Errors name the tensor
+/// they come from.
+pub async fn infer(state: &AppState, ticket: &Ticket, req: InferRequest) -> Result<InferResponse> {
     let (model_name, model_version) = model(state, &req.model_name, req.model_version.as_deref())?;
     tensors::check_requested(req.outputs.as_deref())?;
     let (frame, image) = tensors::frame_from_inputs(req.inputs, req.id.clone())?;
     let m = frame.persons.len();
     let resp = state
         .predictor
-        .answer(frame, image.map(|b| RawImages(vec![b])), state.request_timeout)
+        .answer_admitted(ticket, frame, image.map(|b| RawImages(vec![b])), state.request_timeout)
         .await
         .map_err(tensors::rename_error)?;
     let all = tensors::outputs_from_response(&resp, m)?;

@@ -3,8 +3,7 @@
 //! `binary_data_output`, per-output `binary_data`). Errors are `{"error": "..."}`.
 
 use axum::body::Bytes;
-use axum::extract::rejection::BytesRejection;
-use axum::extract::{Path, State};
+use axum::extract::{FromRequest, Path, Request, State};
 use axum::http::{header, HeaderMap, HeaderName, HeaderValue, StatusCode};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
@@ -13,6 +12,7 @@ use serde::Deserialize;
 use serde_json::{json, Map, Value};
 
 use super::super::errors::v2_response;
+use super::super::http::bytes_rejection;
 use super::super::AppState;
 use super::tensors::{DataType, InputTensor, RequestedOutput, TensorData, TensorSpec, INPUTS, OUTPUTS};
 use super::{InferRequest, InferResponse};
@@ -143,40 +143,25 @@ async fn model_ready_version(
     readiness(&state, &name, Some(&version))
 }
 
-async fn infer(
-    State(state): State<AppState>,
-    Path(name): Path<String>,
-    headers: HeaderMap,
-    body: std::result::Result<Bytes, BytesRejection>,
-) -> V2Result<Response> {
-    run_infer(&state, name, None, &headers, body).await
+async fn infer(State(state): State<AppState>, Path(name): Path<String>, req: Request) -> V2Result<Response> {
+    run_infer(&state, name, None, req).await
 }
 
 async fn infer_version(
     State(state): State<AppState>,
     Path((name, version)): Path<(String, String)>,
-    headers: HeaderMap,
-    body: std::result::Result<Bytes, BytesRejection>,
+    req: Request,
 ) -> V2Result<Response> {
-    run_infer(&state, name, Some(version), &headers, body).await
+    run_infer(&state, name, Some(version), req).await
 }
 
-async fn run_infer(
-    state: &AppState,
-    name: String,
-    version: Option<String>,
-    headers: &HeaderMap,
-    body: std::result::Result<Bytes, BytesRejection>,
-) -> V2Result<Response> {
-    let body = body.map_err(|r| {
-        if r.status() == StatusCode::PAYLOAD_TOO_LARGE {
-            Error::PayloadTooLarge { limit: state.body_limit }
-        } else {
-            Error::Malformed(format!("cannot read the request body: {}", r.body_text()))
-        }
-    })?;
-    let req = parse_request(headers, &body, name, version)?;
-    let resp = super::infer(state, req).await?;
+/// Admitted (early, or now) before the body is read, then parsed and answered.
+async fn run_infer(state: &AppState, name: String, version: Option<String>, req: Request) -> V2Result<Response> {
+    let ticket = state.predictor.admitted(crate::server::early_admission::ticket(req.extensions()))?;
+    let headers = req.headers().clone();
+    let body = Bytes::from_request(req, state).await.map_err(|r| bytes_rejection(&r, state.body_limit))?;
+    let req = parse_request(&headers, &body, name, version)?;
+    let resp = super::infer(state, &ticket, req).await?;
     Ok(encode_response(resp)?)
 }
 
