@@ -127,7 +127,7 @@ fn main() {
         (
             "libjpeg-turbo, each window at its own scale (the server's)",
             Box::new(|c, j| {
-                let crops = decode_crops(CameraImage::Jpeg(j.to_vec()), &c.windows, c.size.0, c.size.1, || Ok(()));
+                let crops = decode_crops(&CameraImage::Jpeg(j.to_vec()), &c.windows, c.size.0, c.size.1, || Ok(()));
                 drop(crops.unwrap().unwrap())
             }),
         ),

@@ -16,12 +16,11 @@ use std::time::{Duration, Instant};
 
 use base64::Engine;
 use posefuse::frame::Frame;
-use posefuse::geometry::Camera;
-use posefuse::keypoints::K;
-use posefuse::pipeline::{crop_rgb, fused_points, normalize, prepare_person, smoothed_features};
+use posefuse::pipeline::fusion_input;
 use posefuse::runtime::{env, Bundle, ModelKind, Models};
 use posefuse::server::grpc::frame_to_proto;
 use posefuse::server::grpc::proto::posefuse_client::PosefuseClient;
+use posefuse::service::planned_inputs;
 use server_support::*;
 
 fn percentile(sorted: &[Duration], p: f64) -> Duration {
@@ -60,20 +59,16 @@ fn image_bytes(frame: &Frame) -> Vec<u8> {
     base64::engine::general_purpose::STANDARD.decode(frame.image.as_ref().unwrap()).unwrap()
 }
 
-/// The model inputs the server builds for the frame's person, through the same pipeline calls.
+/// The model inputs the server builds for the frame's person (`service::planned_inputs`,
+/// `pipeline::fusion_input`).
 fn model_inputs(models: &mut Models, bundle: &Bundle, frame: &Frame) -> (Vec<f32>, Vec<f32>) {
     let cfg = bundle.config();
-    let img = image::load_from_memory(&image_bytes(frame)).unwrap().to_rgb8();
-    let p = &frame.persons[0];
-    let camera = Camera::from_calibration(frame.calibration.as_ref().unwrap()).unwrap();
-    let prepared =
-        prepare_person(None, Some(&camera), &frame.points.decode().unwrap(), &p.box_3d, p.box_2d.as_ref(), cfg);
-    let image_input = normalize(&crop_rgb(&img, prepared.crop.as_ref().unwrap()), cfg);
-    let input = prepared.input.unwrap();
+    let p = planned_inputs(frame.clone(), cfg).unwrap().remove(0);
+    assert_eq!(p.mode, posefuse::service::api::Mode::Fusion, "the bench's person runs in fusion mode");
+    let image_input = p.image.unwrap();
     let hm = models.run(ModelKind::Camera, 1, &image_input).unwrap();
-    let h = cfg.heatmap_size as usize;
-    let features = smoothed_features(&hm, K, h, h, &input.uv, cfg);
-    (image_input, fused_points(&input.xyz, &features, K))
+    let fused = fusion_input(&hm, &p.points.xyz, &p.points.uv, cfg);
+    (image_input, fused)
 }
 
 fn main() {

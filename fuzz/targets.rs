@@ -112,7 +112,7 @@ pub fn jpeg_decode(data: &[u8]) {
             CropTransform::for_box(&b, &PipelineConfig::default())
         })
         .collect();
-    if let Ok(Ok(crops)) = decode_crops(image, &windows, w, h, || Ok(())) {
+    if let Ok(Ok(crops)) = decode_crops(&image, &windows, w, h, || Ok(())) {
         assert_eq!(crops.len(), windows.len());
     }
 }

@@ -252,7 +252,7 @@ fn fixture_frames_give_the_server_the_same_crops_and_points_as_the_shards() {
     let windows: Vec<CropTransform> =
         frame.persons.iter().map(|p| CropTransform::for_box(&p.box_2d.unwrap(), &cfg)).collect();
     let opened = posefuse::image_decode::open(&frame, None, None).unwrap();
-    let crops = posefuse::image_decode::decode_crops(opened, &windows, 1920, 1280, || Ok(())).unwrap().unwrap();
+    let crops = posefuse::image_decode::decode_crops(&opened, &windows, 1920, 1280, || Ok(())).unwrap().unwrap();
     for ((row, person), crop) in rows.into_iter().zip(&frame.persons).zip(&crops) {
         let b2 = person.box_2d.unwrap();
         let shard_crop: Vec<u8> = img.slice(ndarray::s![row, .., .., ..]).iter().copied().collect();

@@ -13,7 +13,7 @@ use posefuse::frame::Frame;
 use posefuse::pipeline::yaw_difference;
 use posefuse::runtime::{Runtime, RuntimeConfig};
 use posefuse::service::api::{Mode, PersonPose};
-use posefuse::service::heading_stage::{with_estimated_headings, Refine, AGREE_DEG};
+use posefuse::service::heading_stage::{estimated_boxes, Refine, AGREE_DEG};
 use posefuse::service::Predictor;
 use server_support::*;
 
@@ -80,7 +80,11 @@ async fn the_heading_stage_answers_with_the_facings_it_predicted() {
     let staged = Predictor::new(runtime(model_dir()).await).with_heading_stage(runtime(view_dir()).await, AGREE_DEG);
     for frame in [three_mode_frame(), turned_end_for_end(three_mode_frame())] {
         let first = view.answer(frame.clone(), None, Duration::from_secs(30)).await.unwrap();
-        let repaired = with_estimated_headings(frame.clone(), &first, AGREE_DEG);
+        let boxes = frame.persons.iter().map(|p| p.box_3d).collect();
+        let mut repaired = frame.clone();
+        for (p, b) in repaired.persons.iter_mut().zip(estimated_boxes(boxes, &first, AGREE_DEG)) {
+            p.box_3d = b;
+        }
         let want = answer(&default, repaired).await;
         let got = answer(&staged, frame).await;
         assert_eq!(got.len(), want.len());

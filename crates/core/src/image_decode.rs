@@ -186,18 +186,6 @@ fn guard<T>(f: impl FnOnce() -> std::result::Result<T, String>) -> std::result::
     std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).unwrap_or_else(|_| Err("decoder failed".into()))
 }
 
-/// Decodes `image` as `plan` says, reading a JPEG to its end; the error says why the pixels
-/// could not be decoded.
-pub fn decode(image: CameraImage, plan: &DecodePlan) -> std::result::Result<DecodedImage, String> {
-    match image {
-        CameraImage::Pixels(image) => Ok(DecodedImage::whole(image)),
-        CameraImage::Jpeg(bytes) => decode_planned(&bytes, &mode_plan(plan, &bytes)?, true),
-        CameraImage::Png(bytes) => decode_with_image_crate(&bytes, image::ImageFormat::Png),
-        CameraImage::Absent => Err("no image in the request".into()),
-        CameraImage::Undecodable(why) => Err(why),
-    }
-}
-
 /// `plan`, or under `POSEFUSE_DECODE=full` the whole image at its scale.
 fn mode_plan(plan: &DecodePlan, bytes: &[u8]) -> std::result::Result<DecodePlan, String> {
     if planned_decode_enabled() {
@@ -208,10 +196,11 @@ fn mode_plan(plan: &DecodePlan, bytes: &[u8]) -> std::result::Result<DecodePlan,
 }
 
 /// The crop of each window, each cut from `image` decoded at the window's own DCT scale (see the
-/// module docs): the same crop whatever the other windows are. One decoded image is held at a
-/// time; `still_wanted` is asked before each pass.
+/// module docs): the same crop whatever the other windows are, so crops may be cut again later
+/// from the same image, some at a time. One decoded image is held at a time; `still_wanted` is
+/// asked before each pass.
 pub fn decode_crops(
-    image: CameraImage,
+    image: &CameraImage,
     windows: &[CropTransform],
     width: u32,
     height: u32,
@@ -220,11 +209,17 @@ pub fn decode_crops(
     let black = |t: &CropTransform| RgbImage::new(t.size, t.size);
     let bytes = match image {
         CameraImage::Jpeg(bytes) => bytes,
-        other => {
+        CameraImage::Pixels(image) => {
             still_wanted()?;
-            return Ok(decode(other, &DecodePlan::full(width, height))
+            return Ok(Ok(windows.iter().map(|t| crop_rgb(image, &scaled(t, 1))).collect()));
+        }
+        CameraImage::Png(bytes) => {
+            still_wanted()?;
+            return Ok(decode_with_image_crate(bytes, image::ImageFormat::Png)
                 .map(|img| windows.iter().map(|t| img.crop(t)).collect()));
         }
+        CameraImage::Absent => return Ok(Err("no image in the request".into())),
+        CameraImage::Undecodable(why) => return Ok(Err(why.clone())),
     };
     let mut crops: Vec<Option<RgbImage>> = vec![None; windows.len()];
     let passes = plan_passes(windows, width, height);
@@ -232,11 +227,11 @@ pub fn decode_crops(
     let last = (0..passes.len()).max_by_key(|&i| passes[i].plan.region.map_or(0, |r| r.y1)).unwrap_or(0);
     for (i, pass) in passes.iter().enumerate() {
         still_wanted()?;
-        let plan = match mode_plan(&pass.plan, &bytes) {
+        let plan = match mode_plan(&pass.plan, bytes) {
             Ok(p) => p,
             Err(e) => return Ok(Err(e)),
         };
-        let img = match decode_planned(&bytes, &plan, i == last) {
+        let img = match decode_planned(bytes, &plan, i == last) {
             Ok(img) => img,
             Err(e) => return Ok(Err(e)),
         };
@@ -337,10 +332,10 @@ mod tests {
         let (_, jpeg) = pattern(960, 640);
         let t = CropTransform { x0: 301.7, y0: 122.4, scale: 64.0 / 410.0, size: 64 };
         let plan = plan_decode(&[t], 960, 640);
-        let out = decode(CameraImage::Jpeg(jpeg.clone()), &plan).unwrap();
+        let out = decode_planned(&jpeg, &plan, true).unwrap();
         assert_eq!(out.denominator, plan.denominator);
         assert!(out.origin != (0, 0) && out.image.width() < 960 / plan.denominator, "{:?}", out.origin);
-        let whole = decode(CameraImage::Jpeg(jpeg.clone()), &DecodePlan::full(960, 640)).unwrap();
+        let whole = decode_planned(&jpeg, &DecodePlan::full(960, 640), true).unwrap();
         assert_eq!((whole.denominator, whole.origin, whole.image.dimensions()), (1, (0, 0), (960, 640)));
         // `POSEFUSE_DECODE=full` (any case) asks for the whole decode; anything else, or nothing, plans
         assert!(!planned_unless_full(Some("full")) && !planned_unless_full(Some("FULL")));
@@ -360,10 +355,10 @@ mod tests {
         let (_, jpeg) = pattern(960, 640);
         let windows = crowd();
         let ok = || Ok(());
-        let together = decode_crops(CameraImage::Jpeg(jpeg.clone()), &windows, 960, 640, ok).unwrap().unwrap();
+        let together = decode_crops(&CameraImage::Jpeg(jpeg.clone()), &windows, 960, 640, ok).unwrap().unwrap();
         assert_eq!(together.len(), windows.len());
         for (i, t) in windows.iter().enumerate() {
-            let alone = decode_crops(CameraImage::Jpeg(jpeg.clone()), &[*t], 960, 640, ok).unwrap().unwrap();
+            let alone = decode_crops(&CameraImage::Jpeg(jpeg.clone()), &[*t], 960, 640, ok).unwrap().unwrap();
             assert!(alone[0] == together[i], "window {i} differs alone and in the crowd");
             // what `POSEFUSE_DECODE=full` decodes: the whole image at the window's own scale
             let d = crate::pipeline::window_denominator(t);
@@ -380,12 +375,12 @@ mod tests {
         let (img, jpeg) = pattern(960, 640);
         let windows = crowd();
         let from_pixels =
-            decode_crops(CameraImage::Pixels(img.clone()), &windows, 960, 640, || Ok(())).unwrap().unwrap();
+            decode_crops(&CameraImage::Pixels(img.clone()), &windows, 960, 640, || Ok(())).unwrap().unwrap();
         for (t, c) in windows.iter().zip(&from_pixels) {
             assert!(*c == DecodedImage::whole(img.clone()).crop(t));
         }
         let mut asked = 0;
-        let gone = decode_crops(CameraImage::Jpeg(jpeg), &windows, 960, 640, || {
+        let gone = decode_crops(&CameraImage::Jpeg(jpeg), &windows, 960, 640, || {
             asked += 1;
             if asked > 1 {
                 Err(Error::Unavailable("gone".into()))
@@ -395,7 +390,7 @@ mod tests {
         });
         assert!(matches!(gone, Err(Error::Unavailable(_))), "the second pass is not decoded once nobody waits");
         assert_eq!(asked, 2);
-        let none = decode_crops(CameraImage::Absent, &windows, 960, 640, || Ok(())).unwrap();
+        let none = decode_crops(&CameraImage::Absent, &windows, 960, 640, || Ok(())).unwrap();
         assert_eq!(none.unwrap_err(), "no image in the request");
     }
 
@@ -447,7 +442,7 @@ mod tests {
         assert!(matches!(open(&frame_with(None, 50, 30), Some(png.clone()), None).unwrap(), CameraImage::Png(_)));
         assert_eq!(open(&frame_with(None, 50, 31), Some(png.clone()), None).err().unwrap().field_name(), Some("image"));
         let CameraImage::Png(bytes) = open(&frame_with(None, 50, 30), Some(png), None).unwrap() else { unreachable!() };
-        assert_eq!(decode(CameraImage::Png(bytes), &DecodePlan::full(50, 30)).unwrap().image.dimensions(), (50, 30));
+        assert_eq!(decode_with_image_crate(&bytes, image::ImageFormat::Png).unwrap().image.dimensions(), (50, 30));
     }
 
     #[test]
@@ -478,9 +473,9 @@ mod tests {
             panic!("the header is sound")
         };
         let top = [CropTransform { x0: 10.0, y0: 5.0, scale: 64.0 / 40.0, size: 64 }];
-        let planned = decode_crops(CameraImage::Jpeg(bytes.clone()), &top, 200, 120, || Ok(())).unwrap();
+        let planned = decode_crops(&CameraImage::Jpeg(bytes.clone()), &top, 200, 120, || Ok(())).unwrap();
         assert!(planned.unwrap_err().contains("corrupt data"));
-        let whole = decode(CameraImage::Jpeg(bytes), &DecodePlan::full(200, 120));
+        let whole = decode_planned(&bytes, &DecodePlan::full(200, 120), true);
         assert!(whole.err().is_some_and(|e| e.contains("corrupt data")));
     }
 }

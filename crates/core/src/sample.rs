@@ -66,7 +66,7 @@ pub fn decode_jpeg(bytes: &[u8]) -> Result<RgbImage> {
 /// The crops of `windows` from a JPEG, cut the way the server cuts a request's crops
 /// (`image_decode::decode_crops`: each at its own DCT scale).
 pub fn planned_crops(jpeg: &[u8], windows: &[CropTransform], width: u32, height: u32) -> Result<Vec<RgbImage>> {
-    image_decode::decode_crops(image_decode::CameraImage::Jpeg(jpeg.to_vec()), windows, width, height, || Ok(()))?
+    image_decode::decode_crops(&image_decode::CameraImage::Jpeg(jpeg.to_vec()), windows, width, height, || Ok(()))?
         .map_err(|e| Error::Io(format!("jpeg decode: {e}")))
 }
 

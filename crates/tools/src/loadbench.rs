@@ -19,13 +19,12 @@ use posefuse_data::error::Context;
 use posefuse_data::{bail, invalid};
 
 use posefuse_core::frame::{Frame, RgbPixels};
-use posefuse_core::geometry::Camera;
-use posefuse_core::image_decode::{self, CameraImage};
-use posefuse_core::keypoints::K;
-use posefuse_core::pipeline::{fused_points, normalize, prepare_person, smoothed_features, CropTransform};
+use posefuse_core::pipeline::fusion_input;
 use posefuse_serve::runtime::RuntimeConfig;
 use posefuse_serve::runtime::{env, Bundle, ModelKind, Models};
 use posefuse_serve::server::grpc::proto;
+use posefuse_serve::service::api::Mode;
+use posefuse_serve::service::planned_inputs;
 
 /// How the bench sends each frame's camera image.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -344,45 +343,26 @@ struct Raw {
 /// One person's camera input `[3, S, S]` and point-fusion input `[N, 3 + K]`.
 type PersonInputs = (Vec<f32>, Vec<f32>);
 
-/// Camera inputs and fusion inputs of every person of `frames` that has both, made with the
-/// server's own pipeline calls (planned decode, crop, normalize, point input, fusion features).
+/// Camera inputs and fusion inputs of every fusion person of `frames`, as the server plans them
+/// (`service::planned_inputs`) and chains them (`pipeline::fusion_input`).
 fn raw_inputs(
     models: &mut Models,
     bundle: &Bundle,
     frames: &[Frame],
 ) -> posefuse_data::error::Result<Vec<Vec<PersonInputs>>> {
     let cfg = bundle.config();
-    let h = cfg.heatmap_size as usize;
     let mut out = Vec::new();
     for frame in frames {
-        let calibration =
-            frame.calibration.as_ref().ok_or_else(|| posefuse_data::invalid!("a single-camera frame is needed"))?;
-        let camera = Camera::from_calibration(calibration)?;
-        let points = frame.points.decode()?;
-        let prepared: Vec<_> = frame
-            .persons
-            .iter()
-            .map(|p| prepare_person(None, Some(&camera), &points, &p.box_3d, p.box_2d.as_ref(), cfg))
-            .collect();
-        let windows: Vec<CropTransform> = prepared.iter().filter_map(|p| p.crop).collect();
-        let image = image_decode::open(frame, None, None)?;
-        if !matches!(image, CameraImage::Jpeg(_) | CameraImage::Png(_)) {
-            bail!("a fixture without a usable image");
-        }
-        let cut = image_decode::decode_crops(image, &windows, camera.width, camera.height, || Ok(()))?
-            .map_err(|e| invalid!("{e}"))?;
         let mut persons = Vec::new();
-        let mut cut = cut.into_iter();
-        for p in prepared {
-            let Some(_) = p.crop else { continue };
-            let crop = cut.next().ok_or_else(|| invalid!("one crop per window"))?;
-            let Some(input) = p.input else { continue };
-            let x = normalize(&crop, cfg);
+        for p in planned_inputs(frame.clone(), cfg)? {
+            let (Mode::Fusion, Some(x)) = (p.mode, p.image) else { continue };
             let hm = models.run(ModelKind::Camera, 1, &x)?;
-            let fused = fused_points(&input.xyz, &smoothed_features(&hm, K, h, h, &input.uv, cfg), K);
-            persons.push((x, fused));
+            persons.push((x.clone(), fusion_input(&hm, &p.points.xyz, &p.points.uv, cfg)));
         }
         out.push(persons);
+    }
+    if out.iter().all(Vec::is_empty) {
+        bail!("no person of these frames runs in fusion mode: the raw ceiling needs camera and LiDAR");
     }
     Ok(out)
 }

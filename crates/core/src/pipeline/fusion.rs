@@ -2,6 +2,7 @@
 //! sample each point's cell, giving every LiDAR point K camera features.
 
 use super::PipelineConfig;
+use crate::keypoints::K;
 
 /// A `size × size` Gaussian with standard deviation `sigma` (cells), normalized to sum 1,
 /// row-major.
@@ -144,6 +145,21 @@ pub fn smoothed_features(
         }
     }
     out
+}
+
+/// The K camera features of each point of a person (paper sec. 3.2): the camera network's
+/// `heatmaps` (`[K, H, H]`, `H = cfg.heatmap_size`) smoothed and sampled at the points'
+/// model-input pixels `uv`, `[N, K]`.
+pub fn fusion_features(heatmaps: &[f32], uv: &[[f32; 2]], cfg: &PipelineConfig) -> Vec<f32> {
+    let h = cfg.heatmap_size as usize;
+    smoothed_features(heatmaps, K, h, h, uv, cfg)
+}
+
+/// The fusion point-network input `[N, 3 + K]` of a person from its camera network's
+/// `heatmaps`: [`fusion_features`] at `uv` beside each point's `xyz`. The serving path, the
+/// benchmarks and the load bench all build it here.
+pub fn fusion_input(heatmaps: &[f32], xyz: &[[f32; 3]], uv: &[[f32; 2]], cfg: &PipelineConfig) -> Vec<f32> {
+    fused_points(xyz, &fusion_features(heatmaps, uv, cfg), K)
 }
 
 /// `[N, 3 + K]` point-network input: each point's coordinates followed by its camera features.

@@ -18,7 +18,8 @@ pub use decode_plan::{
 };
 pub use facing::{facing, yaw_difference, Facing, FULL_WIDTH_M};
 pub use fusion::{
-    cell_index, fused_points, gaussian_kernel, lidar_points, sample_features, smooth_heatmaps, smoothed_features,
+    cell_index, fused_points, fusion_features, fusion_input, gaussian_kernel, lidar_points, sample_features,
+    smooth_heatmaps, smoothed_features,
 };
 pub use lift::{decode_heatmaps, lift, reliability};
 pub use points::{

@@ -1,82 +1,108 @@
 //! A frame's cameras in the service: the single camera or each of `cameras`, which one each
 //! person uses (the one it names, else `geometry::best_camera`), and each camera's image opened
-//! only when some person uses it. Errors about a camera name its field within `cameras[i]`.
+//! (its header read and checked) only when some person uses it, once however many passes plan
+//! the frame. Errors about a camera name its field within `cameras[i]`.
 
 use posefuse_core::error::{Error, Result};
-use posefuse_core::frame::{CameraCalibration, Frame, Person, RgbPixels};
+use posefuse_core::frame::{Box3d, CameraCalibration, Frame, Person, RgbPixels};
 use posefuse_core::geometry::{best_camera, Camera};
 use posefuse_core::image_decode::{self, CameraImage, ImageInput, RawImages};
 
-/// The cameras of one frame, their images not yet opened.
-pub(super) struct FrameCameras<'f> {
-    frame: &'f Frame,
+/// One camera's image as the request carried it, moved out of the frame, not yet opened.
+#[derive(Default)]
+struct ImageSource {
+    raw: Option<Vec<u8>>,
+    base64: Option<String>,
+    pixels: Option<RgbPixels>,
+}
+
+/// The cameras of one validated frame; each image is opened when first used.
+pub(super) struct FrameCameras {
+    /// The single-camera form (every person uses camera 0, whatever it names).
+    single: bool,
     pub cameras: Vec<Camera>,
     /// `cameras`' names; `None` for the single-camera form (its responses name no camera).
     pub names: Vec<Option<String>>,
     /// Where errors about each camera are named (`""` or `cameras[i]`).
     at: Vec<String>,
-    calibrations: Vec<&'f CameraCalibration>,
-    inputs: Vec<Option<ImageInput<'f>>>,
+    calibrations: Vec<CameraCalibration>,
+    sources: Vec<Option<ImageSource>>,
+    /// Opened images (`None`: not opened yet, or never used).
+    images: Vec<Option<CameraImage>>,
 }
 
-impl<'f> FrameCameras<'f> {
-    /// The validated frame's cameras: `raw` holds the images sent as bytes beside it (camera
-    /// order), `pixels` those moved out of it (`Frame::take_pixels`).
-    pub fn new(frame: &'f Frame, raw: Option<RawImages>, pixels: Vec<Option<RgbPixels>>) -> Result<Self> {
-        let calibrations = frame.camera_calibrations();
+impl FrameCameras {
+    /// The cameras of `frame` (validated), their images moved out of it: `raw` holds the images
+    /// sent as bytes beside it (camera order).
+    pub fn take(frame: &mut Frame, raw: Option<RawImages>) -> Result<Self> {
+        let pixels = frame.take_pixels();
+        let calibrations: Vec<(Option<String>, String, CameraCalibration)> = frame
+            .camera_calibrations()
+            .into_iter()
+            .map(|(name, at, c)| (name.map(str::to_string), at, c.clone()))
+            .collect();
         let n = calibrations.len();
+        let single = frame.cameras.is_empty();
+        let mut base64: Vec<Option<String>> =
+            if single { vec![frame.image.take()] } else { frame.cameras.iter_mut().map(|c| c.image.take()).collect() };
         let mut raw = raw.map(|r| r.0).unwrap_or_default().into_iter();
         let mut pixels = pixels.into_iter();
         let mut out = FrameCameras {
-            frame,
+            single,
             cameras: Vec::with_capacity(n),
             names: Vec::with_capacity(n),
             at: Vec::with_capacity(n),
             calibrations: Vec::with_capacity(n),
-            inputs: Vec::with_capacity(n),
+            sources: Vec::with_capacity(n),
+            images: (0..n).map(|_| None).collect(),
         };
         for (i, (name, at, calibration)) in calibrations.into_iter().enumerate() {
-            out.cameras.push(Camera::from_calibration(calibration).map_err(|e| e.within(&at))?);
-            let base64 = match name {
-                None => frame.image.as_deref(),
-                Some(_) => frame.cameras.get(i).and_then(|c| c.image.as_deref()),
+            out.cameras.push(Camera::from_calibration(&calibration).map_err(|e| e.within(&at))?);
+            let source = ImageSource {
+                raw: raw.next(),
+                base64: base64.get_mut(i).and_then(Option::take),
+                pixels: pixels.next().flatten(),
             };
-            let input = ImageInput { raw: raw.next(), base64, pixels: pixels.next().flatten() };
             if name.is_some() {
-                require_one_image(&input, &at)?;
+                require_one_image(&source, &at)?;
             }
-            out.names.push(name.map(str::to_string));
+            out.names.push(name);
             out.at.push(at);
             out.calibrations.push(calibration);
-            out.inputs.push(Some(input));
+            out.sources.push(Some(source));
         }
         Ok(out)
     }
 
-    /// The camera `person` uses: the one it names, the single camera, or the one that sees its
-    /// 3D box best (none when no camera does).
-    pub fn choose(&self, person: &Person) -> Option<usize> {
+    /// The camera `person` uses with its 3D box at `box_3d`: the one it names, the single
+    /// camera, or the one that sees the box best (none when no camera does).
+    pub fn choose(&self, person: &Person, box_3d: &Box3d) -> Option<usize> {
         match &person.camera {
-            _ if self.frame.cameras.is_empty() => Some(0),
+            _ if self.single => Some(0),
             Some(name) => self.names.iter().position(|n| n.as_deref() == Some(name.as_str())),
-            None => best_camera(&self.cameras, &person.box_3d),
+            None => best_camera(&self.cameras, box_3d),
         }
     }
 
-    /// The images of the cameras in `used` (header read and checked, pixels not decoded); the
-    /// others stay unopened (`Absent`, never consulted).
-    pub fn open_used(&mut self, used: &[Option<usize>]) -> Result<Vec<CameraImage>> {
-        let mut images = Vec::with_capacity(self.cameras.len());
-        for (c, input) in self.inputs.iter_mut().enumerate() {
-            let image = match input.take() {
-                Some(input) if used.contains(&Some(c)) => {
-                    image_decode::open_camera(input, self.calibrations[c]).map_err(|e| e.within(&self.at[c]))?
-                }
-                _ => CameraImage::Absent,
-            };
-            images.push(image);
+    /// Opens the images of the cameras in `used` that are not open yet (header read and checked,
+    /// pixels not decoded); the others stay unopened.
+    pub fn open_used(&mut self, used: &[Option<usize>]) -> Result<()> {
+        for c in 0..self.cameras.len() {
+            if self.images[c].is_some() || !used.contains(&Some(c)) {
+                continue;
+            }
+            let Some(source) = self.sources[c].take() else { continue };
+            let input = ImageInput { raw: source.raw, base64: source.base64.as_deref(), pixels: source.pixels };
+            let image = image_decode::open_camera(input, &self.calibrations[c]).map_err(|e| e.within(&self.at[c]))?;
+            self.images[c] = Some(image);
         }
-        Ok(images)
+        Ok(())
+    }
+
+    /// Camera `c`'s image once opened ([`FrameCameras::open_used`]); `Absent` before.
+    pub fn image(&self, c: usize) -> &CameraImage {
+        static ABSENT: CameraImage = CameraImage::Absent;
+        self.images.get(c).and_then(Option::as_ref).unwrap_or(&ABSENT)
     }
 
     /// A field of camera `c` (`image` or `cameras[c].image`).
@@ -89,9 +115,9 @@ impl<'f> FrameCameras<'f> {
 }
 
 /// Each of `cameras` sends exactly one of an encoded image and pixels.
-fn require_one_image(input: &ImageInput<'_>, at: &str) -> Result<()> {
-    let encoded = input.raw.as_ref().is_some_and(|b| !b.is_empty()) || input.base64.is_some();
-    match (encoded, input.pixels.is_some()) {
+fn require_one_image(source: &ImageSource, at: &str) -> Result<()> {
+    let encoded = source.raw.as_ref().is_some_and(|b| !b.is_empty()) || source.base64.is_some();
+    match (encoded, source.pixels.is_some()) {
         (true, true) => {
             Err(Error::field(format!("{at}.image_rgb"), "send either an encoded image or image_rgb pixels, not both"))
         }

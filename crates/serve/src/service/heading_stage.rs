@@ -4,7 +4,7 @@
 //! it. Exact headings are kept (the heading-aligned networks are at their best with them); wrong
 //! ones, 180° flips included, are replaced.
 
-use posefuse_core::frame::Frame;
+use posefuse_core::frame::Box3d;
 use posefuse_core::pipeline::yaw_difference;
 
 use super::api::PoseResponse;
@@ -35,55 +35,39 @@ impl Refine {
 /// Default of [`Refine::settle_deg`].
 pub const SETTLE_DEG: f64 = 5.0;
 
-/// `frame` with each answered person's box heading replaced by the facing `first` predicted for
-/// it, where the two disagree by more than `agree_deg` degrees. Persons the first stage skipped,
-/// or answered without a facing, keep their heading.
-pub fn with_estimated_headings(mut frame: Frame, first: &PoseResponse, agree_deg: f64) -> Frame {
+/// The persons' 3D `boxes` with each answered person's heading replaced by the facing `first`
+/// predicted for it, where the two disagree by more than `agree_deg` degrees. Persons the first
+/// stage skipped, or answered without a facing, keep their heading.
+pub fn estimated_boxes(mut boxes: Vec<Box3d>, first: &PoseResponse, agree_deg: f64) -> Vec<Box3d> {
     let skipped: Vec<usize> = first.skipped.iter().map(|s| s.index).collect();
-    let answered = frame.persons.iter_mut().enumerate().filter(|(i, _)| !skipped.contains(i)).map(|(_, p)| p);
-    for (person, pose) in answered.zip(&first.persons) {
+    let answered = boxes.iter_mut().enumerate().filter(|(i, _)| !skipped.contains(i)).map(|(_, b)| b);
+    for (b, pose) in answered.zip(&first.persons) {
         if let Some(f) = pose.facing {
-            if yaw_difference(f.yaw, person.box_3d.heading).to_degrees() > agree_deg {
-                person.box_3d.heading = f.yaw;
+            if yaw_difference(f.yaw, b.heading).to_degrees() > agree_deg {
+                b.heading = f.yaw;
             }
         }
     }
-    frame
+    boxes
 }
 
 #[cfg(test)]
 mod tests {
     use super::*;
     use crate::service::api::{ErrorDetail, Mode, ModelRef, PersonPose, SkippedPerson, Timings};
-    use posefuse_core::frame::{Box3d, Person, Points, RequestedMode};
     use posefuse_core::pipeline::Facing;
 
-    fn frame(headings: &[f64]) -> Frame {
-        let person = |i: usize, h: f64| Person {
-            id: format!("p{i}"),
-            camera: None,
-            box_2d: None,
-            box_3d: Box3d {
-                center_x: 10.0,
-                center_y: i as f64,
-                center_z: 0.9,
-                length: 0.6,
-                width: 0.7,
-                height: 1.8,
-                heading: h,
-            },
-            ground_truth: None,
+    fn boxes(headings: &[f64]) -> Vec<Box3d> {
+        let b = |i: usize, heading: f64| Box3d {
+            center_x: 10.0,
+            center_y: i as f64,
+            center_z: 0.9,
+            length: 0.6,
+            width: 0.7,
+            height: 1.8,
+            heading,
         };
-        Frame {
-            frame_id: None,
-            image: None,
-            image_rgb: None,
-            calibration: None,
-            cameras: Vec::new(),
-            points: Points::encode(&[]),
-            persons: headings.iter().enumerate().map(|(i, h)| person(i, *h)).collect(),
-            mode: RequestedMode::Auto,
-        }
+        headings.iter().enumerate().map(|(i, h)| b(i, *h)).collect()
     }
 
     fn pose(id: &str, facing: Option<f64>) -> PersonPose {
@@ -104,7 +88,7 @@ mod tests {
         let deg = f64::to_radians;
         // p0: 20° off, kept; p1: 180° off, replaced; p2: skipped by the first stage; p3: no facing;
         // p4: 40° off across ±180°, replaced
-        let f = frame(&[deg(10.0), deg(0.0), deg(90.0), deg(45.0), deg(170.0)]);
+        let f = boxes(&[deg(10.0), deg(0.0), deg(90.0), deg(45.0), deg(170.0)]);
         let first = PoseResponse {
             frame_id: None,
             model: ModelRef { name: "view".into(), version: "0".into() },
@@ -121,15 +105,15 @@ mod tests {
             }],
             timings: Timings::default(),
         };
-        let out = with_estimated_headings(f.clone(), &first, AGREE_DEG);
-        let h: Vec<f64> = out.persons.iter().map(|p| p.box_3d.heading.to_degrees()).collect();
+        let out = estimated_boxes(f.clone(), &first, AGREE_DEG);
+        let h: Vec<f64> = out.iter().map(|b| b.heading.to_degrees()).collect();
         let want = [10.0, 180.0, 90.0, 45.0, -150.0];
         for (got, want) in h.iter().zip(want) {
             assert!((got - want).abs() < 1e-9, "{h:?}");
         }
         // trusting the detector up to 45°: p4 (40° off) keeps its heading too
-        let out = with_estimated_headings(f, &first, 45.0);
-        assert!((out.persons[4].box_3d.heading.to_degrees() - 170.0).abs() < 1e-9);
-        assert!((out.persons[1].box_3d.heading.to_degrees() - 180.0).abs() < 1e-9);
+        let out = estimated_boxes(f, &first, 45.0);
+        assert!((out[4].heading.to_degrees() - 170.0).abs() < 1e-9);
+        assert!((out[1].heading.to_degrees() - 180.0).abs() < 1e-9);
     }
 }

@@ -1,7 +1,5 @@
-//! Cost limits checked before the expensive work: an image's size is read from its header and
-//! compared with the frame's declared size (and a pixel limit) before any pixel is decoded.
-
-use std::io::Cursor;
+//! Cost limits checked before the expensive work: the frame's declared image sizes (each and
+//! together), its cameras, persons and points, and the pixels its crops may read.
 
 use posefuse_core::error::{Error, Result};
 
@@ -9,7 +7,7 @@ use posefuse_core::error::{Error, Result};
 pub const MAX_IMAGE_PIXELS: u64 = 64 * 1024 * 1024;
 
 /// Checks the declared image size against the pixel limit.
-pub fn check_declared_size(width: u32, height: u32) -> Result<()> {
+fn check_declared_size(width: u32, height: u32) -> Result<()> {
     if width > i32::MAX as u32 || height > i32::MAX as u32 {
         return Err(Error::field("calibration.width/height", format!("{width}x{height} exceeds the int32 range")));
     }
@@ -46,24 +44,6 @@ pub fn check_declared_sizes(frame: &posefuse_core::frame::Frame) -> Result<()> {
         ));
     }
     Ok(())
-}
-
-/// Reads the encoded image's width and height from its header (no pixel decoding) and refuses a
-/// size that disagrees with the declared one. `Ok(false)`: the header is not readable (the
-/// caller reports the image as undecodable).
-pub fn check_image_header(bytes: &[u8], width: u32, height: u32) -> Result<bool> {
-    let reader = match image::ImageReader::new(Cursor::new(bytes)).with_guessed_format() {
-        Ok(r) => r,
-        Err(_) => return Ok(false),
-    };
-    let Ok((w, h)) = reader.into_dimensions() else { return Ok(false) };
-    if (w, h) != (width, height) {
-        return Err(Error::field(
-            "image",
-            format!("the image header says {w}x{h} but calibration.width/height say {width}x{height} (not decoded)"),
-        ));
-    }
-    Ok(true)
 }
 
 /// Per-frame limits on persons and LiDAR points (flags of `posefuse serve`). Each person scans
@@ -152,20 +132,6 @@ impl CropBudget {
 #[cfg(test)]
 mod tests {
     use super::*;
-
-    fn png(w: u32, h: u32) -> Vec<u8> {
-        let mut out = Vec::new();
-        image::DynamicImage::new_rgb8(w, h).write_to(&mut Cursor::new(&mut out), image::ImageFormat::Png).unwrap();
-        out
-    }
-
-    #[test]
-    fn the_header_size_must_match_before_decoding() {
-        assert!(check_image_header(&png(8, 6), 8, 6).unwrap());
-        let e = check_image_header(&png(8, 6), 80, 60).unwrap_err();
-        assert_eq!(e.field_name(), Some("image"));
-        assert!(!check_image_header(b"not an image", 8, 6).unwrap());
-    }
 
     #[test]
     fn crops_share_one_budget_per_frame() {

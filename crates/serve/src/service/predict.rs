@@ -1,28 +1,28 @@
-//! Frame → poses: the one path shared by HTTP, gRPC, `posefuse predict` and `posefuse eval`.
-//! Pre-processing is exactly the pipeline's (`prepare_person`, `crop_rgb`, `normalize`,
-//! `smoothed_features` (smoothing + sampling), `fused_points`, `decode_heatmaps`, `lift`,
-//! `keypoints_to_vehicle`, `Camera::project_points`); this file only decides the mode and moves data.
+//! Frame → poses: the one path shared by HTTP, gRPC, KServe, `posefuse predict` and `posefuse
+//! eval`. The frame is validated once (`valid_frame`) and planned (`plan`); this file runs the
+//! plan's persons through the runtime with the pipeline's own functions (`fusion_input`,
+//! `decode_heatmaps`, `lift`, `keypoints_to_vehicle`, `Camera::project_points`) and assembles the
+//! response.
 
 use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
 use super::admission::{Admission, Ticket};
-use super::api::{
-    BatchItem, ErrorDetail, KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, SkippedPerson, Timings,
-};
-use super::cameras::FrameCameras;
+use super::api::{BatchItem, KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, Timings};
+use super::crop_cache::CropCache;
 use super::heading_stage::Refine;
-use super::policy::choose_mode;
+use super::plan::{plan_frame, FramePlan, PersonPlan};
+use super::valid_frame::ValidFrame;
 use crate::runtime::{Bundle, ChainStep, JobOutput, ModelKind, Runtime};
 use posefuse_core::error::{Error, Result};
-use posefuse_core::frame::{Box2d, Frame, RgbPixels};
-use posefuse_core::geometry::{clip_to_image, overlaps_image, projected_box, BoxFrame, Camera};
-use posefuse_core::image_decode::{self, CameraImage, RawImages};
+use posefuse_core::frame::Frame;
+use posefuse_core::geometry::{BoxFrame, Camera};
+use posefuse_core::image_decode::RawImages;
 use posefuse_core::keypoints::{K, NAMES, WAYMO_TYPES};
 use posefuse_core::pipeline::{
-    decode_heatmaps, facing, fused_points, keypoints_to_vehicle, lidar_points, lift, normalize, prepare_person,
-    smoothed_features, turn_points, yaw_difference, CropTransform, PipelineConfig, PointFrame, PointInput,
+    decode_heatmaps, facing, fused_points, fusion_features, fusion_input, keypoints_to_vehicle, lidar_points, lift,
+    turn_points, yaw_difference, PipelineConfig, PointFrame, PointInput,
 };
 
 /// Runs frames through the pipeline and the runtime. The runtime can be swapped while serving
@@ -37,32 +37,6 @@ pub struct Predictor {
     heading_stage: Option<(Arc<Runtime>, f64)>,
     /// Passes asking the point network again at the facing it predicted.
     refine: Refine,
-}
-
-/// Everything decided before inference for one person.
-struct PersonPlan {
-    id: String,
-    /// Index of the camera the person uses (its `box_2d`, crop and keypoint pixels).
-    camera: Option<usize>,
-    mode: Mode,
-    reason: String,
-    box_frame: BoxFrame,
-    box_2d: Option<Box2d>,
-    num_points: usize,
-    input: PointInput,
-    /// Normalized crop `[3, S, S]` when the camera network runs.
-    image_input: Option<Vec<f32>>,
-}
-
-struct FramePlan {
-    cameras: Vec<Camera>,
-    /// The cameras' names as responses give them (`None`: the single-camera form).
-    names: Vec<Option<String>>,
-    persons: Vec<PersonPlan>,
-    /// Persons no model can answer (their data, not the request, is lacking).
-    skipped: Vec<SkippedPerson>,
-    decode: Duration,
-    preprocess: Duration,
 }
 
 #[derive(Default)]
@@ -102,7 +76,7 @@ impl Predictor {
     }
 
     /// The same predictor with `stage` answering first; its facings replace the box headings that
-    /// disagree with them by more than `agree_deg` ([`super::heading_stage::with_estimated_headings`]).
+    /// disagree with them by more than `agree_deg` ([`super::heading_stage::estimated_boxes`]).
     pub fn with_heading_stage(mut self, stage: Arc<Runtime>, agree_deg: f64) -> Predictor {
         self.heading_stage = Some((stage, agree_deg));
         self
@@ -155,60 +129,86 @@ impl Predictor {
         self.predict_admitted(&ticket, frame, raw_images).await
     }
 
-    /// [`Predictor::predict`] for a frame admitted before its body was read.
+    /// [`Predictor::predict`] for a frame admitted before its body was read. The frame is
+    /// validated once ([`ValidFrame`]); with a heading stage it is planned twice (the stage's
+    /// bundle, then the served one at the headings the stage estimated), the second time on the
+    /// images already opened and the crops already cut.
     pub async fn predict_admitted(
         &self,
         ticket: &Ticket,
         frame: Frame,
         raw_images: Option<RawImages>,
     ) -> Result<PoseResponse> {
-        let runtime = self.runtime();
-        let frame = match &self.heading_stage {
-            Some((stage, agree_deg)) => {
-                let first = self.predict_on(stage.clone(), ticket, frame.clone(), raw_images.clone()).await?;
-                super::heading_stage::with_estimated_headings(frame, &first, *agree_deg)
-            }
-            None => frame,
-        };
-        self.predict_on(runtime, ticket, frame, raw_images).await
-    }
-
-    /// One pass of a frame through `runtime`'s bundle.
-    async fn predict_on(
-        &self,
-        runtime: Arc<Runtime>,
-        ticket: &Ticket,
-        frame: Frame,
-        raw_images: Option<RawImages>,
-    ) -> Result<PoseResponse> {
         let started = Instant::now();
-        if !runtime.is_ready() {
+        let runtime = self.runtime();
+        let stage = self.heading_stage.clone();
+        if !runtime.is_ready() || stage.as_ref().is_some_and(|(s, _)| !s.is_ready()) {
             return Err(Error::Unavailable("the models are warming up".into()));
         }
-        let bundle = runtime.bundle().clone();
-        // A decode permit before any decoding (admission bounds how many wait for one).
-        let permit = self.admission.enter(ticket).await?;
         let abandoned = Arc::new(AtomicBool::new(false));
         let _abandon_on_drop = AbandonOnDrop(abandoned.clone());
         let limits = self.limits;
-        // Decoding and cropping are CPU work; keep them off the async executor.
-        let plan = tokio::task::spawn_blocking(move || {
+        let first = stage.as_ref().map_or(&runtime, |(s, _)| s).clone();
+        let prepared = self
+            .off_executor(ticket, &abandoned, move |abandoned| {
+                let t0 = Instant::now();
+                let mut valid = ValidFrame::new(frame, raw_images, &limits)?;
+                let validated = t0.elapsed();
+                let mut crops = CropCache::default();
+                let boxes = valid.boxes();
+                let mut plan = plan_frame(&mut valid, &boxes, first.bundle().config(), &mut crops, abandoned)?;
+                plan.decode += validated;
+                Ok((valid, crops, plan))
+            })
+            .await?;
+        let (mut valid, mut crops, plan) = prepared;
+        let Some((stage, agree_deg)) = stage else {
+            return self.respond(&runtime, &valid, plan, Timings::default(), started).await;
+        };
+        let estimate = self.respond(&stage, &valid, plan, Timings::default(), started).await?;
+        let boxes = super::heading_stage::estimated_boxes(valid.boxes(), &estimate, agree_deg);
+        let cfg = runtime.bundle().config().clone();
+        let (valid, plan) = self
+            .off_executor(ticket, &abandoned, move |abandoned| {
+                let plan = plan_frame(&mut valid, &boxes, &cfg, &mut crops, abandoned)?;
+                Ok((valid, plan))
+            })
+            .await?;
+        self.respond(&runtime, &valid, plan, estimate.timings, started).await
+    }
+
+    /// Runs CPU work on the blocking pool, holding a decode permit (admission bounds how many
+    /// wait for one); `work` is told through the flag when nobody waits for it any more.
+    async fn off_executor<T: Send + 'static>(
+        &self,
+        ticket: &Ticket,
+        abandoned: &Arc<AtomicBool>,
+        work: impl FnOnce(&AtomicBool) -> Result<T> + Send + 'static,
+    ) -> Result<T> {
+        let permit = self.admission.enter(ticket).await?;
+        let abandoned = abandoned.clone();
+        tokio::task::spawn_blocking(move || {
             let _permit = permit;
-            let cfg = bundle.config();
-            limits.check(&frame)?;
-            let mut frame = frame;
-            let pixels = frame.take_pixels();
-            plan_frame(&frame, raw_images, pixels, cfg, &abandoned).map(|p| (p, frame.frame_id))
+            work(&abandoned)
         })
         .await
-        .map_err(|e| Error::Runtime(format!("pre-processing task failed: {e}")))?;
-        let (plan, frame_id) = plan?;
+        .map_err(|e| Error::Runtime(format!("pre-processing task failed: {e}")))?
+    }
+
+    /// Runs a planned frame's persons on `runtime` and assembles the response; `before` holds
+    /// the times of an earlier pass over the same frame (the heading stage's), added in.
+    async fn respond(
+        &self,
+        runtime: &Arc<Runtime>,
+        frame: &ValidFrame,
+        plan: FramePlan,
+        before: Timings,
+        started: Instant,
+    ) -> Result<PoseResponse> {
         let refine =
             if runtime.bundle().config().point_frame() == PointFrame::BoxHeading { self.refine } else { Refine::OFF };
-        let on = OnRuntime { runtime: &runtime, cameras: &plan.cameras, names: &plan.names, refine };
+        let on = OnRuntime { runtime, cameras: &frame.cameras.cameras, names: &frame.cameras.names, refine };
         let results = futures::future::try_join_all(plan.persons.into_iter().map(|p| on.run_person(p))).await?;
-        let mut timings =
-            Timings { decode_ms: ms(plan.decode), preprocess_ms: ms(plan.preprocess), ..Timings::default() };
         let mut persons = Vec::with_capacity(results.len());
         let (mut queue, mut inference, mut post) = (Duration::ZERO, Duration::ZERO, Duration::ZERO);
         for (pose, t) in results {
@@ -219,15 +219,18 @@ impl Predictor {
             metrics::counter!("posefuse_persons_total", "mode" => pose.mode.as_str()).increment(1);
             persons.push(pose);
         }
-        timings.queue_ms = ms(queue);
-        timings.inference_ms = ms(inference);
-        timings.preprocess_ms += ms(post);
-        timings.total_ms = ms(started.elapsed());
+        let timings = Timings {
+            decode_ms: before.decode_ms + ms(plan.decode),
+            preprocess_ms: before.preprocess_ms + ms(plan.preprocess) + ms(post),
+            queue_ms: before.queue_ms + ms(queue),
+            inference_ms: before.inference_ms + ms(inference),
+            total_ms: ms(started.elapsed()),
+        };
         metrics::histogram!("posefuse_preprocess_seconds").record(plan.preprocess.as_secs_f64() + post.as_secs_f64());
         metrics::histogram!("posefuse_decode_seconds").record(plan.decode.as_secs_f64());
         let m = &runtime.bundle().manifest;
         Ok(PoseResponse {
-            frame_id,
+            frame_id: frame.frame_id.clone(),
             model: ModelRef { name: m.name.clone(), version: m.version.clone() },
             persons,
             skipped: plan.skipped,
@@ -296,15 +299,6 @@ impl Drop for AbandonOnDrop {
     }
 }
 
-/// Stops a frame's pre-processing once nobody waits for it.
-fn still_wanted(abandoned: &AtomicBool) -> Result<()> {
-    if abandoned.load(Ordering::Relaxed) {
-        metrics::counter!("posefuse_frames_abandoned_total").increment(1);
-        return Err(Error::Unavailable("the request was abandoned (deadline passed or client gone)".into()));
-    }
-    Ok(())
-}
-
 /// A request's view of the runtime it started on.
 struct OnRuntime<'a> {
     runtime: &'a Runtime,
@@ -318,7 +312,7 @@ impl OnRuntime<'_> {
         let cfg = self.runtime.bundle().config();
         let (s, hm) = (cfg.image_size, cfg.heatmap_size as usize);
         let mut times = PersonTimes::default();
-        let PersonPlan { id, camera, mode, reason, mut box_frame, box_2d, num_points, input, image_input } = p;
+        let PersonPlan { id, camera, mode, reason, mut box_frame, box_2d, num_points, input, image_input, .. } = p;
         let need_crop = || Error::Runtime(format!("{id}: camera input missing"));
         let (local, scores): (Vec<[f32; 3]>, Option<Vec<f32>>) = match mode {
             Mode::Fusion => {
@@ -327,8 +321,7 @@ impl OnRuntime<'_> {
                 let kept = (self.refine.passes > 0).then(|| (input.xyz.clone(), input.uv.clone()));
                 let PointInput { xyz, uv, .. } = input;
                 // runs on the inference worker, between the two networks
-                let then: ChainStep =
-                    Box::new(move |h: &[f32]| fused_points(&xyz, &smoothed_features(h, K, hm, hm, &uv, &chain_cfg), K));
+                let then: ChainStep = Box::new(move |h: &[f32]| fusion_input(h, &xyz, &uv, &chain_cfg));
                 let out = self.runtime.infer_chain(x, ModelKind::PointFusion, then).await?;
                 times.add(&out);
                 let h = out.camera.as_deref().ok_or_else(|| Error::Runtime(format!("{id}: heatmaps missing")))?;
@@ -418,8 +411,7 @@ impl OnRuntime<'_> {
             let turned = turn_points(ask.xyz, ask.given, f.yaw);
             let (kind, input) = match ask.camera {
                 Some((heatmaps, uv)) => {
-                    let hm = ask.cfg.heatmap_size as usize;
-                    let f = features.get_or_insert_with(|| smoothed_features(heatmaps, K, hm, hm, uv, ask.cfg));
+                    let f = features.get_or_insert_with(|| fusion_features(heatmaps, uv, ask.cfg));
                     (ModelKind::PointFusion, fused_points(&turned, f, K))
                 }
                 None => (ModelKind::PointLidar, lidar_points(&turned)),
@@ -440,178 +432,3 @@ fn triples(v: &[f32]) -> Vec<[f32; 3]> {
 /// Persons per frame by default: each one scans every point of the frame, so the work is
 /// bounded here (`--max-persons`).
 pub const MAX_PERSONS: usize = 256;
-
-/// A 2D box may extend past the image (a person close to the camera) but not without bound: the
-/// crop allocates its full side.
-const MAX_BOX_IMAGE_RATIO: f64 = 2.0;
-
-fn check_box_size(b: &Box2d, field: &str, width: u32, height: u32) -> Result<()> {
-    if b.width > MAX_BOX_IMAGE_RATIO * width as f64 || b.height > MAX_BOX_IMAGE_RATIO * height as f64 {
-        return Err(Error::field(
-            field,
-            format!("{}x{} px is more than {MAX_BOX_IMAGE_RATIO} times the {width}x{height} image", b.width, b.height),
-        ));
-    }
-    Ok(())
-}
-
-fn plan_frame(
-    frame: &Frame,
-    raw_images: Option<RawImages>,
-    pixels: Vec<Option<RgbPixels>>,
-    cfg: &PipelineConfig,
-    abandoned: &AtomicBool,
-) -> Result<FramePlan> {
-    frame.validate()?;
-    super::limits::check_declared_sizes(frame)?;
-    let mut cams = FrameCameras::new(frame, raw_images, pixels)?;
-    let t0 = Instant::now();
-    let points = frame.points.decode()?;
-    if points.is_empty() {
-        return Err(Error::field("points", "no LiDAR points: every mode needs the points of the persons' boxes"));
-    }
-    still_wanted(abandoned)?;
-    // each person's camera, then the headers of the images someone uses (their sizes checked
-    // against the calibrations): the pixels are decoded once the crops are known
-    let chosen: Vec<Option<usize>> = frame.persons.iter().map(|p| cams.choose(p)).collect();
-    let mut images = cams.open_used(&chosen)?;
-    let mut decode = t0.elapsed();
-    let t1 = Instant::now();
-    let mut persons = Vec::with_capacity(frame.persons.len());
-    let mut crops: Vec<Option<CropTransform>> = Vec::with_capacity(frame.persons.len());
-    let mut crop_budgets: Vec<_> =
-        cams.cameras.iter().map(|c| super::limits::CropBudget::for_image(c.width, c.height)).collect();
-    let mut skipped = Vec::new();
-    let mut skip = |index: usize, id: &str, e: Error| {
-        metrics::counter!("posefuse_persons_skipped_total").increment(1);
-        skipped.push(SkippedPerson { index, id: id.to_string(), error: ErrorDetail::from(&e) });
-    };
-    for (i, (person, &cam)) in frame.persons.iter().zip(&chosen).enumerate() {
-        still_wanted(abandoned)?;
-        let field = format!("persons[{i}]");
-        let camera = cam.and_then(|c| cams.cameras.get(c));
-        let box_2d = match (&person.box_2d, camera) {
-            (Some(b), Some(camera)) => {
-                if !overlaps_image(b, camera.width, camera.height) {
-                    return Err(Error::field(
-                        format!("{field}.box_2d"),
-                        format!("lies entirely outside the {}x{} image", camera.width, camera.height),
-                    ));
-                }
-                check_box_size(b, &format!("{field}.box_2d"), camera.width, camera.height)?;
-                Some(*b)
-            }
-            (None, Some(camera)) => projected_box(camera, &person.box_3d).map(|b| {
-                let (w, h) = (camera.width, camera.height);
-                if check_box_size(&b, "", w, h).is_ok() {
-                    b
-                } else {
-                    clip_to_image(b, w, h)
-                }
-            }),
-            // a box of a camera the person does not name (validation refuses it)
-            (_, None) => None,
-        };
-        let prepared = prepare_person(None, camera, &points, &person.box_3d, box_2d.as_ref(), cfg);
-        let num_points = prepared.points.len();
-        let Some(input) = prepared.input else {
-            let why = format!("no LiDAR point lies inside the box (grown by {} m on every side)", cfg.box_margin);
-            skip(i, &person.id, Error::InsufficientData { field: format!("{field}.box_3d"), message: why });
-            continue;
-        };
-        let image = cam.and_then(|c| images.get(c));
-        let camera_problem: Option<(String, String)> = match (cam, image, box_2d) {
-            (Some(c), Some(CameraImage::Absent), _) => Some((cams.field(c, "image"), "no image in the request".into())),
-            (Some(c), Some(CameraImage::Undecodable(m)), _) => Some((cams.field(c, "image"), m.clone())),
-            (None, _, _) => Some((
-                format!("{field}.box_2d"),
-                "no 2D box given and the projected 3D box is outside the view of every camera".into(),
-            )),
-            (_, _, None) => Some((
-                format!("{field}.box_2d"),
-                "no 2D box given and the projected 3D box is outside the camera view".into(),
-            )),
-            (_, _, Some(_)) => None,
-        };
-        let (mode, reason) = choose_mode(frame.mode, camera_problem, num_points, cfg.min_points as usize)?;
-        if mode == Mode::Camera && !input.uv.iter().any(|uv| uv[0].is_finite() && uv[1].is_finite()) {
-            let why = "camera-only lifting needs points in front of the camera; none of the box's points are";
-            skip(i, &person.id, Error::InsufficientData { field: format!("{field}.box_3d"), message: why.into() });
-            continue;
-        }
-        let usable = image.is_some_and(CameraImage::usable);
-        let crop = match (mode, usable, cam, prepared.crop) {
-            (Mode::Fusion | Mode::Camera, true, Some(c), Some(t)) => {
-                crop_budgets[c].spend(t.side(), &field)?;
-                Some(t)
-            }
-            (Mode::Fusion | Mode::Camera, _, _, _) => {
-                return Err(Error::Runtime(format!("{field}: camera mode chosen without a crop")));
-            }
-            (Mode::Lidar, _, _, _) => None,
-        };
-        crops.push(crop);
-        persons.push(PersonPlan {
-            id: person.id.clone(),
-            camera: cam,
-            mode,
-            reason,
-            box_frame: prepared.box_frame,
-            box_2d,
-            num_points,
-            input,
-            image_input: None,
-        });
-    }
-    // Per camera, each crop cut from the image decoded at its own DCT scale
-    // (`image_decode::decode_crops`): a person's crop does not depend on the others.
-    let mut decode_pixels = Duration::ZERO;
-    for (c, camera) in cams.cameras.iter().enumerate() {
-        let here: Vec<usize> =
-            (0..persons.len()).filter(|&i| persons[i].camera == Some(c) && crops[i].is_some()).collect();
-        if here.is_empty() {
-            continue;
-        }
-        let windows: Vec<CropTransform> = here.iter().filter_map(|&i| crops[i]).collect();
-        let image = std::mem::replace(&mut images[c], CameraImage::Absent);
-        let t2 = Instant::now();
-        let decoded =
-            image_decode::decode_crops(image, &windows, camera.width, camera.height, || still_wanted(abandoned))?;
-        decode_pixels += t2.elapsed();
-        match decoded {
-            Ok(cut) => {
-                for (&i, crop) in here.iter().zip(&cut) {
-                    still_wanted(abandoned)?;
-                    persons[i].image_input = Some(normalize(crop, cfg));
-                }
-            }
-            // the header was sound but the pixels are not
-            Err(why) if frame.mode == posefuse_core::frame::RequestedMode::Auto => {
-                for &i in &here {
-                    (persons[i].mode, persons[i].reason) = (Mode::Lidar, format!("camera unusable: {why}"));
-                }
-            }
-            Err(why) => {
-                let field = cams.field(c, "image");
-                return Err(Error::field(field, format!("mode {:?} needs the camera: {why}", frame.mode)));
-            }
-        }
-    }
-    decode += decode_pixels;
-    let FrameCameras { cameras, names, .. } = cams;
-    Ok(FramePlan { cameras, names, persons, skipped, decode, preprocess: t1.elapsed().saturating_sub(decode_pixels) })
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn oversized_boxes_are_refused() {
-        let b = Box2d { center_x: 50.0, center_y: 40.0, width: 201.0, height: 10.0 };
-        let e = check_box_size(&b, "persons[0].box_2d", 100, 80).unwrap_err();
-        assert_eq!(e.field_name(), Some("persons[0].box_2d"));
-        assert!(check_box_size(&Box2d { width: 200.0, ..b }, "f", 100, 80).is_ok());
-        assert!(check_box_size(&Box2d { height: 161.0, ..b }, "f", 100, 80).is_err());
-    }
-}
