@@ -395,7 +395,8 @@ async fn out_of_file_descriptors_accept_backs_off_and_the_server_recovers() {
     assert!(s.ready());
 }
 
-/// A frame whose pre-processing is long: many persons, each scanning many points.
+/// A frame whose pre-processing is long: many persons, each scanning many points and each with
+/// its own crop (boxes a few millimetres apart: identical windows would share one).
 fn heavy_frame(persons: usize, points: usize) -> Frame {
     let b = person_box(8.0, 0.5);
     let mut pts = points_in(&b, 300);
@@ -407,7 +408,9 @@ fn heavy_frame(persons: usize, points: usize) -> Frame {
         calibration: Some(calibration()),
         cameras: Vec::new(),
         points: Points::encode(&pts),
-        persons: (0..persons).map(|i| Person { id: format!("p{i}"), ..person("p", b, true) }).collect(),
+        persons: (0..persons)
+            .map(|i| Person { id: format!("p{i}"), ..person("p", person_box(8.0, 0.5 + i as f64 * 0.002), true) })
+            .collect(),
         mode: RequestedMode::Auto,
     }
 }

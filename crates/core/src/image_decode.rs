@@ -198,7 +198,7 @@ fn mode_plan(plan: &DecodePlan, bytes: &[u8]) -> std::result::Result<DecodePlan,
 /// The crop of each window, each cut from `image` decoded at the window's own DCT scale (see the
 /// module docs): the same crop whatever the other windows are, so crops may be cut again later
 /// from the same image, some at a time. One decoded image is held at a time; `still_wanted` is
-/// asked before each pass.
+/// asked before each pass and each crop (a frame may cut hundreds, none cheap).
 pub fn decode_crops(
     image: &CameraImage,
     windows: &[CropTransform],
@@ -210,13 +210,16 @@ pub fn decode_crops(
     let bytes = match image {
         CameraImage::Jpeg(bytes) => bytes,
         CameraImage::Pixels(image) => {
-            still_wanted()?;
-            return Ok(Ok(windows.iter().map(|t| crop_rgb(image, &scaled(t, 1))).collect()));
+            let crops = windows.iter().map(|t| still_wanted().map(|()| crop_rgb(image, &scaled(t, 1))));
+            return crops.collect::<Result<_>>().map(Ok);
         }
         CameraImage::Png(bytes) => {
             still_wanted()?;
-            return Ok(decode_with_image_crate(bytes, image::ImageFormat::Png)
-                .map(|img| windows.iter().map(|t| img.crop(t)).collect()));
+            let img = match decode_with_image_crate(bytes, image::ImageFormat::Png) {
+                Ok(img) => img,
+                Err(e) => return Ok(Err(e)),
+            };
+            return windows.iter().map(|t| still_wanted().map(|()| img.crop(t))).collect::<Result<_>>().map(Ok);
         }
         CameraImage::Absent => return Ok(Err("no image in the request".into())),
         CameraImage::Undecodable(why) => return Ok(Err(why.clone())),
@@ -236,6 +239,7 @@ pub fn decode_crops(
             Err(e) => return Ok(Err(e)),
         };
         for &w in &pass.windows {
+            still_wanted()?;
             crops[w] = Some(img.crop(&windows[w]));
         }
     }
@@ -371,7 +375,7 @@ mod tests {
     }
 
     #[test]
-    fn crops_of_pixels_and_pngs_come_from_the_whole_image_and_cancellation_stops_the_passes() {
+    fn crops_of_pixels_and_pngs_come_from_the_whole_image_and_cancellation_stops_every_crop() {
         let (img, jpeg) = pattern(960, 640);
         let windows = crowd();
         let from_pixels =
@@ -379,17 +383,31 @@ mod tests {
         for (t, c) in windows.iter().zip(&from_pixels) {
             assert!(*c == DecodedImage::whole(img.clone()).crop(t));
         }
-        let mut asked = 0;
-        let gone = decode_crops(&CameraImage::Jpeg(jpeg), &windows, 960, 640, || {
-            asked += 1;
-            if asked > 1 {
-                Err(Error::Unavailable("gone".into()))
-            } else {
+        let mut png = Vec::new();
+        img.write_to(&mut Cursor::new(&mut png), image::ImageFormat::Png).unwrap();
+        // every form asks before each crop (and before each decode), and stops at the first
+        // "no" however many windows are left
+        for image in [CameraImage::Pixels(img.clone()), CameraImage::Png(png), CameraImage::Jpeg(jpeg)] {
+            let mut asked = 0;
+            decode_crops(&image, &windows, 960, 640, || {
+                asked += 1;
                 Ok(())
-            }
-        });
-        assert!(matches!(gone, Err(Error::Unavailable(_))), "the second pass is not decoded once nobody waits");
-        assert_eq!(asked, 2);
+            })
+            .unwrap()
+            .unwrap();
+            assert!(asked >= windows.len(), "{asked} asks for {} crops", windows.len());
+            let mut asked = 0;
+            let gone = decode_crops(&image, &windows, 960, 640, || {
+                asked += 1;
+                if asked > 2 {
+                    Err(Error::Unavailable("gone".into()))
+                } else {
+                    Ok(())
+                }
+            });
+            assert!(matches!(gone, Err(Error::Unavailable(_))), "crops cut once nobody waits");
+            assert_eq!(asked, 3);
+        }
         let none = decode_crops(&CameraImage::Absent, &windows, 960, 640, || Ok(())).unwrap();
         assert_eq!(none.unwrap_err(), "no image in the request");
     }

@@ -242,8 +242,13 @@ fn cut_crops(
         if here.is_empty() {
             continue;
         }
-        let missing: Vec<CropTransform> =
-            here.iter().filter_map(|&i| persons[i].crop).filter(|t| crops.get(c, t).is_none()).collect();
+        // persons with the same window (one box given twice) share its crop
+        let mut missing: Vec<CropTransform> = Vec::new();
+        for t in here.iter().filter_map(|&i| persons[i].crop) {
+            if crops.get(c, &t).is_none() && !missing.contains(&t) {
+                missing.push(t);
+            }
+        }
         let failed = match crops.failure(c) {
             Some(why) => Some(why.to_string()),
             None if missing.is_empty() => None,
@@ -356,6 +361,21 @@ mod tests {
         // the same boxes again: nothing is cut
         plan_frame(&mut valid, &turned, &cfg, &mut crops, &never).unwrap();
         assert_eq!(crops.cut, 3);
+    }
+
+    #[test]
+    fn persons_with_the_same_window_share_one_crop() {
+        let (cfg, never) = (PipelineConfig::with_image_size(64), AtomicBool::new(false));
+        let mut f = frame();
+        let twin = Person { id: "twin".into(), ..f.persons[0].clone() };
+        f.persons.push(twin);
+        let mut valid = ValidFrame::new(f, None, &FrameLimits::DEFAULT).unwrap();
+        let mut crops = CropCache::default();
+        let boxes = valid.boxes();
+        let plan = plan_frame(&mut valid, &boxes, &cfg, &mut crops, &never).unwrap();
+        assert_eq!(crops.cut, 2);
+        assert!(plan.persons[2].image_input.is_some());
+        assert_eq!(plan.persons[0].image_input, plan.persons[2].image_input);
     }
 
     #[test]
