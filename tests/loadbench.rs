@@ -3,7 +3,7 @@
 
 mod server_support;
 
-use posefuse::loadbench::{run_bench, BenchOptions, ImageForm, Protocol};
+use posefuse::loadbench::{run_bench, BenchOptions, ImageForm, LoadOptions, Protocol};
 use std::time::Duration;
 
 use posefuse::runtime::RuntimeConfig;
@@ -20,7 +20,7 @@ fn the_bench_loads_a_server_with_every_image_form() {
     let forms = [ImageForm::AsIs, ImageForm::Jpeg420, ImageForm::Jpeg444, ImageForm::Rgb];
     let persons_per_frame: Vec<usize> = frames.iter().map(|f| f.persons.len()).collect();
     for protocol in [Protocol::Http, Protocol::Grpc] {
-        let args = BenchOptions {
+        let load = LoadOptions {
             url: Some(server.url("")),
             server_pid: Some(std::process::id()),
             data: data.path().to_path_buf(),
@@ -31,10 +31,9 @@ fn the_bench_loads_a_server_with_every_image_form() {
             frames: 2,
             timeout: 30.0,
             no_raw: false,
-            model_dir: model_dir(),
-            runtime: RuntimeConfig::DEFAULT,
-            serve_args: Vec::new(),
         };
+        let args =
+            BenchOptions { load, model_dir: model_dir(), runtime: RuntimeConfig::DEFAULT, serve_args: Vec::new() };
         let report = run_bench(args).unwrap();
         assert!(report.raw_frame_p50.is_some_and(|p| p > Duration::ZERO), "{report:?}");
         assert!(report.raw_persons_per_s.is_some_and(|p| p > 0.0), "{report:?}");

@@ -7,7 +7,7 @@ use std::time::Duration;
 
 use posefuse::eval::HeadingNoise;
 use posefuse::frame::RequestedMode;
-use posefuse::loadbench::{BenchOptions, ImageForm, Protocol};
+use posefuse::loadbench::{BenchOptions, LoadOptions};
 use posefuse::pipeline::PointFrame;
 use posefuse::runtime::RuntimeConfig;
 use posefuse::server::conn::ConnLimits;
@@ -316,37 +316,8 @@ impl From<SimulateArgs> for SimulateOptions {
 /// Arguments of `posefuse bench`.
 #[derive(Debug, clap::Args)]
 pub struct BenchArgs {
-    /// Server to load (HTTP base URL; gRPC on the same port). Absent: start `posefuse serve` on a
-    /// free local port with the runtime flags below, and measure it.
-    #[arg(long, env = "POSEFUSE_BENCH_URL")]
-    pub url: Option<String>,
-    /// Process id of the server behind --url, for its memory.
-    #[arg(long, env = "POSEFUSE_BENCH_SERVER_PID")]
-    pub server_pid: Option<u32>,
-    /// Simulator output directory: its `requests/*.json` fixtures are sent.
-    #[arg(long, env = "POSEFUSE_BENCH_DATA")]
-    pub data: PathBuf,
-    /// Concurrent clients, one step each (comma-separated).
-    #[arg(long, env = "POSEFUSE_BENCH_CONCURRENCY", value_delimiter = ',', default_value = "1,4,16,64")]
-    pub concurrency: Vec<usize>,
-    /// Seconds of load per step.
-    #[arg(long, env = "POSEFUSE_BENCH_DURATION", default_value_t = 10.0)]
-    pub duration: f64,
-    /// Image forms to send, one table block each (comma-separated).
-    #[arg(long, env = "POSEFUSE_BENCH_IMAGE", value_enum, value_delimiter = ',', default_value = "as-is")]
-    pub image: Vec<ImageForm>,
-    /// Transport.
-    #[arg(long, env = "POSEFUSE_BENCH_PROTOCOL", value_enum, default_value = "http")]
-    pub protocol: Protocol,
-    /// Fixtures used (the first N frames, in file-name order).
-    #[arg(long, env = "POSEFUSE_BENCH_FRAMES", default_value_t = 40)]
-    pub frames: usize,
-    /// Seconds after which a request counts as hung (status `timeout`).
-    #[arg(long, env = "POSEFUSE_BENCH_TIMEOUT", default_value_t = 30.0)]
-    pub timeout: f64,
-    /// Skip the raw ONNX Runtime ceiling.
-    #[arg(long, env = "POSEFUSE_BENCH_NO_RAW")]
-    pub no_raw: bool,
+    #[command(flatten)]
+    pub load: LoadOptions,
     /// The bundle and thread settings: of the server this starts, and of the raw ceiling.
     #[command(flatten)]
     pub runtime: RuntimeArgs,
@@ -355,19 +326,10 @@ pub struct BenchArgs {
 impl From<BenchArgs> for BenchOptions {
     fn from(a: BenchArgs) -> BenchOptions {
         BenchOptions {
+            load: a.load,
             runtime: a.runtime.runtime_config(),
             serve_args: a.runtime.heading_flags(),
             model_dir: a.runtime.model_dir,
-            url: a.url,
-            server_pid: a.server_pid,
-            data: a.data,
-            concurrency: a.concurrency,
-            duration: a.duration,
-            image: a.image,
-            protocol: a.protocol,
-            frames: a.frames,
-            timeout: a.timeout,
-            no_raw: a.no_raw,
         }
     }
 }
@@ -394,5 +356,27 @@ mod tests {
         let plain = Runtime::try_parse_from(["x"]).unwrap().runtime.heading_flags();
         assert!(!plain.iter().any(|f| f == "--heading-model"), "{plain:?}");
         assert!(plain.contains(&"--heading-refine=0".to_string()), "{plain:?}");
+    }
+
+    #[derive(Parser)]
+    struct Bench {
+        #[command(flatten)]
+        bench: BenchArgs,
+    }
+
+    #[test]
+    fn bench_flags_reach_the_bench_options() {
+        use posefuse::loadbench::{ImageForm, Protocol};
+        let given = ["x", "--data", "d", "--concurrency", "1,16", "--image", "jpeg420,rgb", "--protocol", "grpc"];
+        let given = given.into_iter().chain(["--frames", "7", "--no-raw", "--heading-model", "models/view"]);
+        let o = BenchOptions::from(Bench::try_parse_from(given).unwrap().bench);
+        assert_eq!((o.load.data, o.load.concurrency, o.load.frames), (PathBuf::from("d"), vec![1, 16], 7));
+        assert_eq!((o.load.image, o.load.protocol), (vec![ImageForm::Jpeg420, ImageForm::Rgb], Protocol::Grpc));
+        assert!(o.load.no_raw && o.load.url.is_none());
+        assert_eq!((o.load.duration, o.load.timeout), (10.0, 30.0));
+        assert!(o.serve_args.iter().any(|f| f == "--heading-model"), "{:?}", o.serve_args);
+        let plain = BenchOptions::from(Bench::try_parse_from(["x", "--data", "d"]).unwrap().bench);
+        assert_eq!((plain.load.concurrency, plain.load.image), (vec![1, 4, 16, 64], vec![ImageForm::AsIs]));
+        assert!(!plain.load.no_raw);
     }
 }

@@ -50,31 +50,54 @@ pub enum Protocol {
     Grpc,
 }
 
-/// Arguments of `posefuse bench`.
-/// What `posefuse bench` runs (the command line's flags, as plain values).
+/// The load `posefuse bench` puts on a server: its command line's flags, declared once here and
+/// flattened into the binary's `bench` command.
 #[derive(Debug, Clone)]
-pub struct BenchOptions {
+#[cfg_attr(feature = "cli", derive(clap::Args))]
+pub struct LoadOptions {
     /// Server to load (HTTP base URL; gRPC on the same port). Absent: start `posefuse serve` on a
     /// free local port with the runtime flags below, and measure it.
+    #[cfg_attr(feature = "cli", arg(long, env = "POSEFUSE_BENCH_URL"))]
     pub url: Option<String>,
     /// Process id of the server behind --url, for its memory.
+    #[cfg_attr(feature = "cli", arg(long, env = "POSEFUSE_BENCH_SERVER_PID"))]
     pub server_pid: Option<u32>,
     /// Simulator output directory: its `requests/*.json` fixtures are sent.
+    #[cfg_attr(feature = "cli", arg(long, env = "POSEFUSE_BENCH_DATA"))]
     pub data: PathBuf,
     /// Concurrent clients, one step each (comma-separated).
+    #[cfg_attr(
+        feature = "cli",
+        arg(long, env = "POSEFUSE_BENCH_CONCURRENCY", value_delimiter = ',', default_value = "1,4,16,64")
+    )]
     pub concurrency: Vec<usize>,
     /// Seconds of load per step.
+    #[cfg_attr(feature = "cli", arg(long, env = "POSEFUSE_BENCH_DURATION", default_value_t = 10.0))]
     pub duration: f64,
     /// Image forms to send, one table block each (comma-separated).
+    #[cfg_attr(
+        feature = "cli",
+        arg(long, env = "POSEFUSE_BENCH_IMAGE", value_enum, value_delimiter = ',', default_value = "as-is")
+    )]
     pub image: Vec<ImageForm>,
     /// Transport.
+    #[cfg_attr(feature = "cli", arg(long, env = "POSEFUSE_BENCH_PROTOCOL", value_enum, default_value = "http"))]
     pub protocol: Protocol,
     /// Fixtures used (the first N frames, in file-name order).
+    #[cfg_attr(feature = "cli", arg(long, env = "POSEFUSE_BENCH_FRAMES", default_value_t = 40))]
     pub frames: usize,
     /// Seconds after which a request counts as hung (status `timeout`).
+    #[cfg_attr(feature = "cli", arg(long, env = "POSEFUSE_BENCH_TIMEOUT", default_value_t = 30.0))]
     pub timeout: f64,
     /// Skip the raw ONNX Runtime ceiling.
+    #[cfg_attr(feature = "cli", arg(long, env = "POSEFUSE_BENCH_NO_RAW"))]
     pub no_raw: bool,
+}
+
+/// What `posefuse bench` runs: the load, and the bundle and settings of the server it starts.
+#[derive(Debug, Clone)]
+pub struct BenchOptions {
+    pub load: LoadOptions,
     /// The bundle: of the server this starts, and of the raw ceiling.
     pub model_dir: PathBuf,
     /// Thread settings: of the server this starts, and of the raw ceiling.
@@ -402,7 +425,7 @@ fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> posefuse_data::error::R
         bail!("no person of the fixtures has both a crop and LiDAR points");
     }
     let b = rt.max_batch.max(1);
-    let secs = args.duration.min(10.0);
+    let secs = args.load.duration.min(10.0);
     let done = Arc::new(AtomicU64::new(0));
     let mut sessions = vec![models];
     for _ in 1..rt.workers.max(1) {
@@ -509,15 +532,16 @@ pub struct BenchReport {
 
 /// Runs `posefuse bench`: prints its table and returns what it measured.
 pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport> {
-    let mut frames: Vec<Frame> = posefuse_serve::eval::load_fixtures(&args.data)?.into_iter().map(|(_, f)| f).collect();
-    frames.truncate(args.frames.max(1));
+    let mut frames: Vec<Frame> =
+        posefuse_serve::eval::load_fixtures(&args.load.data)?.into_iter().map(|(_, f)| f).collect();
+    frames.truncate(args.load.frames.max(1));
     let persons: usize = frames.iter().map(|f| f.persons.len()).sum();
     println!(
         "fixtures: {} frames, {} persons ({:.2} per frame) from {}",
         frames.len(),
         persons,
         persons as f64 / frames.len() as f64,
-        args.data.display()
+        args.load.data.display()
     );
     let r = &args.runtime;
     println!(
@@ -526,10 +550,10 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
         r.workers,
         r.intra_threads,
         r.max_batch,
-        args.protocol,
-        args.duration
+        args.load.protocol,
+        args.load.duration
     );
-    let raw = if args.no_raw { None } else { Some(raw_ceiling(&args, &frames)?) };
+    let raw = if args.load.no_raw { None } else { Some(raw_ceiling(&args, &frames)?) };
     if let Some(raw) = &raw {
         println!(
             "raw ONNX Runtime (camera + point fusion): per frame p50 {:.3} ms | ceiling {:.0} persons/s",
@@ -538,10 +562,10 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
         );
     }
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build()?;
-    let spawned = if args.url.is_none() { Some(spawn_server(&args)?) } else { None };
-    let url = args.url.clone().or_else(|| spawned.as_ref().map(|s| s.url.clone())).unwrap_or_default();
+    let spawned = if args.load.url.is_none() { Some(spawn_server(&args)?) } else { None };
+    let url = args.load.url.clone().or_else(|| spawned.as_ref().map(|s| s.url.clone())).unwrap_or_default();
     let url = url.trim_end_matches('/').to_string();
-    let pid = args.server_pid.or_else(|| spawned.as_ref().map(|s| s.child.id()));
+    let pid = args.load.server_pid.or_else(|| spawned.as_ref().map(|s| s.child.id()));
     rt.block_on(wait_ready(&url))?;
     println!();
     let mut report = BenchReport {
@@ -551,20 +575,20 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
     };
     println!("| image | clients | frames/s | persons/s | p50 ms | p99 ms | p50 / raw | persons/s / raw | statuses | peak RSS MB |");
     println!("|---|---|---|---|---|---|---|---|---|---|");
-    for &form in &args.image {
+    for &form in &args.load.image {
         let prepared: Vec<Prepared> =
             frames.iter().map(|f| prepare(f, form)).collect::<posefuse_data::error::Result<_>>()?;
         let prepared = Arc::new(prepared);
         let load = Load {
-            protocol: args.protocol,
+            protocol: args.load.protocol,
             clients: 1,
-            duration: Duration::from_secs_f64(args.duration),
-            timeout: Duration::from_secs_f64(args.timeout),
+            duration: Duration::from_secs_f64(args.load.duration),
+            timeout: Duration::from_secs_f64(args.load.timeout),
         };
         // warm-up, one client for a second (at most one step's duration)
-        let warm = Duration::from_secs_f64(args.duration.min(1.0));
+        let warm = Duration::from_secs_f64(args.load.duration.min(1.0));
         rt.block_on(run_step(Load { duration: warm, ..load }, &url, None, prepared.clone()))?;
-        for &clients in &args.concurrency {
+        for &clients in &args.load.concurrency {
             let s = rt.block_on(run_step(Load { clients: clients.max(1), ..load }, &url, pid, prepared.clone()))?;
             if s.latencies.is_empty() {
                 bail!("{form:?} at {clients} clients: no request was answered with 200 ({:?})", s.statuses);
