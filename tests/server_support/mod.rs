@@ -2,6 +2,8 @@
 //! image with a drawn figure) and an in-process server on a loopback port.
 #![allow(dead_code)]
 
+pub mod process;
+
 use std::io::Cursor;
 use std::net::SocketAddr;
 use std::path::PathBuf;

@@ -13,6 +13,7 @@ use axum::response::{IntoResponse, Response};
 use futures::StreamExt;
 
 use super::errors::{self, HttpError};
+use super::request_context::RouteLabel;
 use crate::service::admission::{Admission, Ticket};
 
 /// The frame route a request is on, for the shape of its refusal.
@@ -24,6 +25,21 @@ pub enum FrameRoute {
     KserveRest,
     /// `posefuse.v1.Posefuse/Predict` or `inference.GRPCInferenceService/ModelInfer`.
     Grpc,
+}
+
+impl FrameRoute {
+    /// The route's label in the access log and the latency metric: the router's pattern, which
+    /// the refused request never reached (gRPC: the method's path).
+    fn label(self, path: &str) -> String {
+        match self {
+            FrameRoute::Native => "/v1/poses".into(),
+            FrameRoute::KserveRest if path.contains("/versions/") => {
+                "/v2/models/{name}/versions/{version}/infer".into()
+            }
+            FrameRoute::KserveRest => "/v2/models/{name}/infer".into(),
+            FrameRoute::Grpc => path.into(),
+        }
+    }
 }
 
 /// The frame route of a request, `None` for every other request (they are not admitted here).
@@ -61,17 +77,22 @@ pub fn admit(
             req.extensions_mut().insert(Arc::new(ticket));
             Ok(req)
         }
-        Err(e) => Err(Box::new(match route {
-            FrameRoute::Grpc => errors::grpc_status(&e).into_http(),
-            FrameRoute::Native => {
-                discard_body(req, body_limit);
-                HttpError::from(e).into_response()
-            }
-            FrameRoute::KserveRest => {
-                discard_body(req, body_limit);
-                errors::v2_response(&e)
-            }
-        })),
+        Err(e) => {
+            let label = route.label(req.uri().path());
+            let mut refusal = match route {
+                FrameRoute::Grpc => errors::grpc_status(&e).into_http(),
+                FrameRoute::Native => {
+                    discard_body(req, body_limit);
+                    HttpError::from(e).into_response()
+                }
+                FrameRoute::KserveRest => {
+                    discard_body(req, body_limit);
+                    errors::v2_response(&e)
+                }
+            };
+            refusal.extensions_mut().insert(RouteLabel(label));
+            Err(Box::new(refusal))
+        }
     }
 }
 

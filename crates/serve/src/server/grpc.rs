@@ -8,6 +8,7 @@ use futures::{Stream, StreamExt};
 use tonic::{Request, Response, Status};
 
 use super::errors::grpc_status;
+use super::metrics::count_grpc as count;
 use super::AppState;
 use crate::service::admission::Ticket;
 use crate::service::api::{Mode, PoseResponse};
@@ -310,10 +311,6 @@ async fn predict_message(
     let ticket = p.admitted(early)?;
     let (frame, image) = frame_from_proto(msg)?;
     p.answer_admitted(&ticket, frame, image, timeout).await.map(response_to_proto)
-}
-
-fn count(method: &'static str, code: tonic::Code) {
-    metrics::counter!("posefuse_grpc_requests_total", "method" => method, "code" => format!("{code:?}")).increment(1);
 }
 
 type ResponseStream = Pin<Box<dyn Stream<Item = std::result::Result<proto::StreamResponse, Status>> + Send>>;

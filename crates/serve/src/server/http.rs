@@ -61,9 +61,10 @@ const ADMIN_BODY_LIMIT: usize = 64 * 1024;
 async fn count_requests(req: Request, next: Next) -> Response {
     let route =
         req.extensions().get::<MatchedPath>().map_or_else(|| "unmatched".to_string(), |m| m.as_str().to_string());
-    let resp = next.run(req).await;
-    metrics::counter!("posefuse_http_requests_total", "route" => route, "status" => resp.status().as_u16().to_string())
+    let mut resp = next.run(req).await;
+    metrics::counter!("posefuse_http_requests_total", "route" => route.clone(), "status" => resp.status().as_u16().to_string())
         .increment(1);
+    resp.extensions_mut().insert(super::request_context::RouteLabel(route));
     resp
 }
 

@@ -14,6 +14,7 @@ pub mod kserve;
 pub mod lifecycle;
 pub mod metrics;
 pub mod reload;
+pub mod request_context;
 pub mod viewer;
 
 use std::future::Future;
@@ -156,6 +157,8 @@ impl App {
             ready: Arc::new(AtomicBool::new(false)),
             prometheus: metrics::install(),
         };
+        let manifest = &state.predictor.bundle().manifest;
+        metrics::build_info(&manifest.name, &manifest.version, true);
         Ok(App {
             state,
             drain_timeout: config.drain_timeout,
@@ -227,6 +230,7 @@ impl App {
                     }
                 }
             }))
+            .layer(axum::middleware::from_fn(request_context::trace_request))
             .layer(axum::middleware::from_fn_with_state(in_flight.clone(), lifecycle::count_in_flight));
         let ready_watch = {
             let (runtime, reporter, ready) = (state.predictor.runtime().clone(), reporter.clone(), state.ready.clone());

@@ -103,6 +103,8 @@ impl Reloader {
         let model = model_ref(&new);
         let old = self.predictor.swap(new);
         let previous = model_ref(&old);
+        super::metrics::build_info(&previous.name, &previous.version, false);
+        super::metrics::build_info(&model.name, &model.version, true);
         *self.model_dir.lock().unwrap_or_else(|p| p.into_inner()) = dir.clone();
         tracing::info!(
             bundle = %dir.display(), name = %model.name, version = %model.version,

@@ -6,6 +6,7 @@
 use tonic::{Request, Response, Status};
 
 use super::super::errors::{grpc_code, grpc_status};
+use super::super::metrics::count_grpc as count;
 use super::super::AppState;
 use super::tensors::{DataType, InputTensor, RequestedOutput, TensorData, TensorSpec, INPUTS, OUTPUTS};
 use super::{InferRequest, InferResponse};
@@ -28,10 +29,6 @@ pub fn service(state: AppState) -> GrpcInferenceServiceServer<KserveService> {
 /// Implements `inference.GRPCInferenceService`.
 pub struct KserveService {
     state: AppState,
-}
-
-fn count(method: &'static str, code: tonic::Code) {
-    metrics::counter!("posefuse_grpc_requests_total", "method" => method, "code" => format!("{code:?}")).increment(1);
 }
 
 /// Counts the call and turns an error into its status.
