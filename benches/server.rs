@@ -92,7 +92,7 @@ fn main() {
     // Raw ONNX Runtime: own sessions, same thread settings, same inputs.
     let bundle = Bundle::load(&cfg.model_dir).unwrap();
     let ort_env = env::environment(&env::resolve_lib(None)).unwrap();
-    let mut models = Models::load(&ort_env, &bundle, cfg.runtime.intra_threads).unwrap();
+    let mut models = Models::load(&ort_env, &bundle, cfg.runtime.intra_threads, cfg.runtime.device).unwrap();
     let (frame, frame_label) = bench_frame();
     let (image_input, fused) = model_inputs(&mut models, &bundle, &frame);
     for _ in 0..50 {

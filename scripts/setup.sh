@@ -3,14 +3,20 @@
 # trainer's dependencies, and ONNX Runtime's shared library copied to .ort/lib for the server.
 # `--runtime-only` stops after ONNX Runtime (the container's builder needs no PyTorch); CI runs
 # every line before that point too, so the container's set-up is the one CI exercises.
+# `--gpu` does the whole set-up, then swaps in ONNX Runtime's GPU build (onnxruntime-gpu, same
+# version, with its CUDA 13 and cuDNN 9 libraries from PyPI) for `posefuse serve --device cuda`:
+# its providers go beside the library in .ort/lib, and .ort/cuda.env sets the loader path to the
+# CUDA libraries (docs/OPERATIONS.md, "Devices").
 set -euo pipefail
 cd "$(dirname "$0")/.."
 PY=${PYTHON:-python3}
 VENV=${POSEFUSE_VENV:-.venv}
+gpu=0
 case "${1:-}" in
   "") runtime_only=0 ;;
   --runtime-only) runtime_only=1 ;;
-  *) echo "usage: $0 [--runtime-only]" >&2; exit 2 ;;
+  --gpu) runtime_only=0; gpu=1 ;;
+  *) echo "usage: $0 [--runtime-only | --gpu]" >&2; exit 2 ;;
 esac
 
 if [ ! -x "$VENV/bin/python" ]; then
@@ -19,10 +25,19 @@ fi
 "$VENV/bin/python" -m pip install -q --upgrade pip
 # The pin lives in requirements.txt (and its lock) only, so the server and the trainer's checks use
 # one version.
-"$VENV/bin/python" -m pip install -q "$(grep -E '^onnxruntime==' models-export/requirements.txt)"
+ort_pin=$(grep -E '^onnxruntime==' models-export/requirements.txt)
+if [ "$gpu" = 0 ] && "$VENV/bin/python" -m pip show -q onnxruntime-gpu >/dev/null 2>&1; then
+  # Back from --gpu: the GPU build's files would shadow the CPU build's (one package directory).
+  "$VENV/bin/python" -m pip uninstall -q -y onnxruntime-gpu
+  "$VENV/bin/python" -m pip install -q --force-reinstall --no-deps "$ort_pin"
+fi
+"$VENV/bin/python" -m pip install -q "$ort_pin"
 
-capi=$("$VENV/bin/python" -c 'import onnxruntime, os; print(os.path.join(os.path.dirname(onnxruntime.__file__), "capi"))')
-lib=$(ls "$capi"/libonnxruntime.so.* | head -n 1)
+capi() {
+  "$VENV/bin/python" -c 'import onnxruntime, os; print(os.path.join(os.path.dirname(onnxruntime.__file__), "capi"))'
+}
+lib=$(ls "$(capi)"/libonnxruntime.so.* | head -n 1)
+rm -rf .ort/lib .ort/cuda.env
 mkdir -p .ort/lib
 cp -f "$lib" .ort/lib/libonnxruntime.so
 echo "ONNX Runtime: .ort/lib/libonnxruntime.so (from $(basename "$lib"))"
@@ -35,4 +50,18 @@ fi
 "$VENV/bin/python" -m pip install -q -r models-export/requirements.lock
 "$VENV/bin/python" -m pip install -q --no-deps -e models-export
 "$VENV/bin/python" -m pip install -q --no-deps -e clients/python
+if [ "$gpu" = 1 ]; then
+  # Both wheels install the `onnxruntime` package: remove the CPU build's files first.
+  version=${ort_pin#onnxruntime==}
+  "$VENV/bin/python" -m pip uninstall -q -y onnxruntime
+  "$VENV/bin/python" -m pip install -q "onnxruntime-gpu[cuda,cudnn]==$version"
+  cp -f "$(capi)"/libonnxruntime.so.* .ort/lib/libonnxruntime.so
+  cp -f "$(capi)"/libonnxruntime_providers_*.so .ort/lib/
+  # The CUDA provider finds CUDA and cuDNN by the loader path (it has no RUNPATH).
+  nvidia=$("$VENV/bin/python" -c 'import nvidia, os; print(os.path.dirname(nvidia.__path__[0] + "/"))')
+  dirs=$(find "$nvidia" -name 'lib*.so*' -printf '%h\n' | sort -u | tr '\n' ':')
+  echo "export LD_LIBRARY_PATH=\"${dirs}\${LD_LIBRARY_PATH:-}\"" > .ort/cuda.env
+  echo "ONNX Runtime GPU build $version: .ort/lib (providers: $(cd .ort/lib && ls libonnxruntime_providers_*.so | tr '\n' ' '))"
+  echo "before 'posefuse serve --device cuda': . .ort/cuda.env"
+fi
 echo "set-up done: $VENV (python, the trainer, the Python client), .ort/lib/libonnxruntime.so"

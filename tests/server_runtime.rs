@@ -6,7 +6,7 @@ mod server_support;
 use std::sync::Arc;
 use std::time::Duration;
 
-use posefuse::runtime::{Bundle, JobOutput, ModelKind, Runtime, RuntimeConfig};
+use posefuse::runtime::{Bundle, Device, JobOutput, ModelKind, Runtime, RuntimeConfig};
 use server_support::model_dir;
 
 fn input(len: usize, seed: f32) -> Vec<f32> {
@@ -119,4 +119,16 @@ async fn jobs_whose_callers_gave_up_are_not_computed() {
     drop(pause);
     let out = live.await.unwrap().unwrap();
     assert_eq!(out.batch, 1, "the five abandoned jobs were run beside the live one");
+}
+
+#[test]
+fn cuda_from_the_cpu_build_refuses_to_start_and_says_how_to_get_it() {
+    // The set-up's default ONNX Runtime is the CPU build (scripts/setup.sh without --gpu).
+    let bundle = Arc::new(Bundle::load(&model_dir()).unwrap());
+    let cfg = RuntimeConfig { device: Device::Cuda(0), ..RuntimeConfig::default() };
+    let e = Runtime::start(bundle.clone(), &cfg).err().expect("CUDA from the CPU build").to_string();
+    assert!(e.contains("--device cuda:0") && e.contains("no CUDA execution provider"), "{e}");
+    assert!(e.contains("scripts/setup.sh --gpu"), "{e}");
+    let cpu = RuntimeConfig { device: Device::Cpu, ..RuntimeConfig::default() };
+    assert!(Runtime::start(bundle, &cpu).is_ok());
 }

@@ -9,7 +9,7 @@ use posefuse::eval::HeadingNoise;
 use posefuse::frame::RequestedMode;
 use posefuse::loadbench::{BenchOptions, LoadOptions};
 use posefuse::pipeline::PointFrame;
-use posefuse::runtime::RuntimeConfig;
+use posefuse::runtime::{Device, RuntimeConfig};
 use posefuse::server::conn::ConnLimits;
 use posefuse::server::ServerConfig;
 use posefuse::service::admission::Sizing;
@@ -31,6 +31,10 @@ pub struct RuntimeArgs {
     /// installed by scripts/setup.sh).
     #[arg(long)]
     pub ort_lib: Option<PathBuf>,
+    /// Where the networks run: cpu, cuda (GPU 0) or cuda:N. CUDA needs ONNX Runtime's GPU build
+    /// (`bash scripts/setup.sh --gpu`); without it the server refuses to start.
+    #[arg(long, env = "POSEFUSE_DEVICE", default_value = "cpu")]
+    pub device: Device,
     /// Inference worker threads; each owns its own ONNX Runtime sessions (0: one per 4 cores).
     #[arg(long, env = "POSEFUSE_WORKERS", default_value_t = 0)]
     pub workers: usize,
@@ -99,6 +103,7 @@ impl RuntimeArgs {
             max_batch: self.max_batch,
             batch_wait: Duration::from_micros(batch_wait_us),
             queue_size: self.queue_size,
+            device: self.device,
         }
     }
 }
@@ -356,6 +361,14 @@ mod tests {
         let plain = Runtime::try_parse_from(["x"]).unwrap().runtime.heading_flags();
         assert!(!plain.iter().any(|f| f == "--heading-model"), "{plain:?}");
         assert!(plain.contains(&"--heading-refine=0".to_string()), "{plain:?}");
+    }
+
+    #[test]
+    fn the_device_flag_reaches_the_runtime() {
+        let cfg = |args: &[&str]| Runtime::try_parse_from(args).map(|a| a.runtime.runtime_config().device);
+        assert_eq!(cfg(&["x"]).unwrap(), Device::Cpu);
+        assert_eq!(cfg(&["x", "--device", "cuda:1"]).unwrap(), Device::Cuda(1));
+        assert!(cfg(&["x", "--device", "gpu"]).is_err());
     }
 
     #[derive(Parser)]

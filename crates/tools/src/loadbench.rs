@@ -394,7 +394,7 @@ fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> posefuse_data::error::R
     let rt = &args.runtime;
     let bundle = Bundle::load(&args.model_dir)?;
     let ort_env = env::environment(&env::resolve_lib(rt.ort_lib.as_deref()))?;
-    let mut models = Models::load(&ort_env, &bundle, rt.intra_threads)?;
+    let mut models = Models::load(&ort_env, &bundle, rt.intra_threads, rt.device)?;
     let inputs = raw_inputs(&mut models, &bundle, frames)?;
     let batch_of = |persons: &[&(Vec<f32>, Vec<f32>)]| {
         let cam: Vec<f32> = persons.iter().flat_map(|p| p.0.iter().copied()).collect();
@@ -429,7 +429,7 @@ fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> posefuse_data::error::R
     let done = Arc::new(AtomicU64::new(0));
     let mut sessions = vec![models];
     for _ in 1..rt.workers.max(1) {
-        sessions.push(Models::load(&ort_env, &bundle, rt.intra_threads)?);
+        sessions.push(Models::load(&ort_env, &bundle, rt.intra_threads, rt.device)?);
     }
     let started = Instant::now();
     let mut threads = Vec::new();
@@ -482,6 +482,7 @@ fn spawn_server(args: &BenchOptions) -> posefuse_data::error::Result<Spawned> {
         .args(["--max-batch", &r.max_batch.to_string()])
         .args(["--batch-wait-us", &r.batch_wait.as_micros().to_string()])
         .args(["--queue-size", &r.queue_size.to_string()])
+        .args(["--device", &r.device.to_string()])
         .args(&args.serve_args)
         .stdout(Stdio::null())
         .stderr(Stdio::null());

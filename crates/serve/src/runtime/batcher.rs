@@ -34,6 +34,8 @@ pub struct RuntimeConfig {
     pub batch_wait: Duration,
     /// Jobs that may wait in the queue before requests are refused.
     pub queue_size: usize,
+    /// Where the sessions run.
+    pub device: super::Device,
 }
 
 impl RuntimeConfig {
@@ -45,6 +47,7 @@ impl RuntimeConfig {
         max_batch: 16,
         batch_wait: Duration::ZERO,
         queue_size: 256,
+        device: super::Device::Cpu,
     };
 }
 
@@ -125,6 +128,7 @@ impl Runtime {
     pub fn start(bundle: Arc<Bundle>, cfg: &RuntimeConfig) -> Result<Runtime> {
         let lib = super::env::resolve_lib(cfg.ort_lib.as_deref());
         let env = super::env::environment(&lib)?;
+        cfg.device.check(&lib)?;
         let workers_n = cfg.workers.max(1);
         let max_batch = cfg.max_batch.max(1);
         let (tx, rx) = crossbeam_channel::bounded::<Job>(cfg.queue_size.max(1));
@@ -135,12 +139,12 @@ impl Runtime {
         for i in 0..workers_n {
             let (rx, env, bundle, warmed, gate, built_tx) =
                 (rx.clone(), env.clone(), bundle.clone(), warmed.clone(), gate.clone(), built_tx.clone());
-            let intra = cfg.intra_threads;
+            let (intra, device) = (cfg.intra_threads, cfg.device);
             let batch_wait = cfg.batch_wait;
             let handle = std::thread::Builder::new()
                 .name(format!("posefuse-worker-{i}"))
                 .spawn(move || {
-                    let mut models = match Models::load(&env, &bundle, intra) {
+                    let mut models = match Models::load(&env, &bundle, intra, device) {
                         Ok(m) => {
                             let _ = built_tx.send(Ok(()));
                             m

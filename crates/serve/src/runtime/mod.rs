@@ -2,12 +2,14 @@
 
 mod batcher;
 pub mod bundle;
+pub mod device;
 pub mod env;
 mod gate;
 mod models;
 
 pub use batcher::{ChainStep, JobOutput, Runtime, RuntimeConfig};
 pub use bundle::{Bundle, Manifest, ModelIo, ModelKind, ModelSpec};
+pub use device::Device;
 #[cfg(feature = "test-hooks")]
 pub use gate::{hold_warm_up, PauseGuard};
 pub use models::Models;

@@ -6,6 +6,7 @@ use ort::session::Session;
 use ort::value::{TensorRef, ValueType};
 
 use super::bundle::{Bundle, ModelIo, ModelKind};
+use super::device::Device;
 use posefuse_core::error::{Error, Result};
 
 /// One session per network, with the I/O resolved from the manifest.
@@ -22,8 +23,14 @@ struct Loaded {
 }
 
 /// Builder errors carry the (non-`Send`) builder; keep them inside this function.
-fn build_session(env: &ort::environment::Environment, io: &ModelIo, intra_threads: usize) -> ort::Result<Session> {
+fn build_session(
+    env: &ort::environment::Environment,
+    io: &ModelIo,
+    intra_threads: usize,
+    device: Device,
+) -> ort::Result<Session> {
     Session::builder(env)?
+        .with_execution_providers(device.providers())?
         .with_optimization_level(GraphOptimizationLevel::Level3)?
         .with_intra_threads(intra_threads)?
         .with_inter_threads(1)?
@@ -31,12 +38,25 @@ fn build_session(env: &ort::environment::Environment, io: &ModelIo, intra_thread
 }
 
 impl Models {
-    /// Builds the three sessions and checks their tensors against the manifest.
-    pub fn load(env: &ort::environment::Environment, bundle: &Bundle, intra_threads: usize) -> Result<Models> {
+    /// Builds the three sessions on `device` and checks their tensors against the manifest.
+    pub fn load(
+        env: &ort::environment::Environment,
+        bundle: &Bundle,
+        intra_threads: usize,
+        device: Device,
+    ) -> Result<Models> {
         let load = |kind: ModelKind| -> Result<Loaded> {
             let io = bundle.io(kind).clone();
-            let session = build_session(env, &io, intra_threads.max(1)).map_err(|e| {
-                Error::Bundle(format!("models.{}: {} does not load: {e}", kind.key(), io.path.display()))
+            let session = build_session(env, &io, intra_threads.max(1), device).map_err(|e| {
+                let what = format!("models.{}: {} does not load", kind.key(), io.path.display());
+                match device {
+                    Device::Cpu => Error::Bundle(format!("{what}: {e}")),
+                    // Mostly the device, not the model: CUDA's libraries, the driver, the GPU.
+                    Device::Cuda(_) => Error::Runtime(format!(
+                        "{what} on {device}: {e} (the CUDA execution provider needs a GPU, its driver, and \
+                         CUDA 13 with cuDNN 9: `bash scripts/setup.sh --gpu` installs the libraries)"
+                    )),
+                }
             })?;
             check_session(&session, &io, kind)?;
             Ok(Loaded { session, io, kind })
