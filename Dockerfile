@@ -6,11 +6,12 @@
 # `--build-context` for debian:bookworm-slim (made from Debian's packages) and one for the builder
 # stage (an image of a binary built outside, with /usr/local/bin/posefuse and /src/.ort/lib).
 
+# nasm: the JPEG decoder's SIMD code (without it, its C code).
 # The toolchain CI builds and tests with (Cargo.toml's rust-version is the oldest one supported).
 ARG RUST_VERSION=1.95
 FROM rust:${RUST_VERSION}-bookworm AS builder
 RUN apt-get update \
-    && apt-get install -y --no-install-recommends python3 python3-venv \
+    && apt-get install -y --no-install-recommends python3 python3-venv nasm \
     && rm -rf /var/lib/apt/lists/*
 WORKDIR /src
 # Only PyPI is used, and only for ONNX Runtime's wheel: the server needs no PyTorch.

@@ -19,6 +19,15 @@ case "${1:-}" in
   *) echo "usage: $0 [--runtime-only | --gpu]" >&2; exit 2 ;;
 esac
 
+# nasm assembles the JPEG decoder's SIMD code at build time; without it the build uses its C code
+# (slower). Installed from Debian's packages where this runs as root (containers, CI).
+if ! command -v nasm >/dev/null 2>&1; then
+  if [ "$(id -u)" -eq 0 ] && command -v apt-get >/dev/null 2>&1; then
+    { apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq --no-install-recommends nasm; } || true
+  fi
+  command -v nasm >/dev/null 2>&1 || echo "note: no nasm (apt-get install nasm): the JPEG decoder builds without SIMD" >&2
+fi
+
 if [ ! -x "$VENV/bin/python" ]; then
   "$PY" -m venv "$VENV"
 fi

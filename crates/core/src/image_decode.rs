@@ -14,6 +14,7 @@
 //! used at full resolution.
 
 mod turbo;
+pub use turbo::simd as jpeg_simd;
 
 use std::io::Cursor;
 use std::sync::OnceLock;

@@ -1,5 +1,6 @@
-//! libjpeg-turbo's decoder (the `mozjpeg-sys` build: C from source, no assembly, so nothing but
-//! a C compiler is needed), for what zune-jpeg cannot do: decode at a DCT scale (½, ¼, ⅛: a
+//! libjpeg-turbo's decoder (the `mozjpeg-sys` build from source: its SIMD code, SSE2/AVX2 as
+//! the CPU has them, where `nasm` was there at build time, else its C code; [`simd`] says which),
+//! for what zune-jpeg cannot do: decode at a DCT scale (½, ¼, ⅛: a
 //! reduced inverse transform per 8×8 block) and only a region. The rows above the region are
 //! entropy-decoded and skipped, the rows below it are never read, and only the iMCU columns it
 //! covers go through the inverse transform, upsampling and colour conversion.
@@ -13,6 +14,19 @@ use std::os::raw::c_int;
 use std::panic::{catch_unwind, resume_unwind, AssertUnwindSafe};
 
 use mozjpeg_sys as jpeg;
+
+extern "C" {
+    /// libjpeg-turbo's own probe (`jsimd.c`, or `jsimd_none.c` in a build without SIMD, which
+    /// answers 0): 1 when the inverse DCT runs in SIMD code on this CPU.
+    fn jsimd_can_idct_islow() -> c_int;
+}
+
+/// Whether the decoder runs its SIMD code: built with it (nasm at build time), a CPU that has it,
+/// and not turned off (`JSIMD_FORCENONE=1`, libjpeg-turbo's switch, read once per process).
+pub fn simd() -> bool {
+    // SAFETY: a pure query of libjpeg-turbo's CPU-feature table, which it initialises on first use.
+    unsafe { jsimd_can_idct_islow() == 1 }
+}
 
 /// Pixels `[x0, x0 + width) × [y0, y0 + height)` of a JPEG decoded at `1/denominator`, RGB8.
 pub struct Region {
@@ -198,6 +212,18 @@ fn decode_unguarded(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn simd_is_on_where_nasm_is() {
+        // nasm at test time stands for nasm at build time (the same machine); CI installs it
+        // (.ci/run) and must not fall back to the C code silently.
+        let nasm = std::process::Command::new("nasm").arg("-v").output().is_ok_and(|o| o.status.success());
+        let ci = std::env::var("CI").is_ok_and(|v| v == "true");
+        let forced_off = std::env::var("JSIMD_FORCENONE").is_ok_and(|v| v == "1");
+        if (nasm || ci) && !forced_off {
+            assert!(simd(), "libjpeg-turbo was built without its SIMD code (nasm: {nasm})");
+        }
+    }
 
     fn jpeg_of(w: u32, h: u32) -> (image::RgbImage, Vec<u8>) {
         let img = image::RgbImage::from_fn(w, h, |x, y| image::Rgb([(x * 3 % 256) as u8, (y * 5 % 256) as u8, 128]));

@@ -342,6 +342,8 @@ pub async fn serve_with_signals(mut config: ServerConfig, addr: SocketAddr) -> R
         batch_wait_us = config.runtime.batch_wait.as_micros() as u64,
         decode_permits = config.decode_permits,
         admission_queue = config.admission_queue,
+        device = %config.runtime.device,
+        jpeg_simd = posefuse_core::image_decode::jpeg_simd(),
         "sizing"
     );
     let listener =
