@@ -21,8 +21,8 @@ extern "C" {
     fn jsimd_can_idct_islow() -> c_int;
 }
 
-/// Whether the decoder runs its SIMD code: built with it (nasm at build time), a CPU that has it,
-/// and not turned off (`JSIMD_FORCENONE=1`, libjpeg-turbo's switch, read once per process).
+/// Whether the decoder runs its SIMD code: built with it (nasm at build time) on a CPU that has
+/// it. (libjpeg-turbo's `JSIMD_FORCENONE` switch has no effect in this build.)
 pub fn simd() -> bool {
     // SAFETY: a pure query of libjpeg-turbo's CPU-feature table, which it initialises on first use.
     unsafe { jsimd_can_idct_islow() == 1 }
@@ -219,8 +219,7 @@ mod tests {
         // (.ci/run) and must not fall back to the C code silently.
         let nasm = std::process::Command::new("nasm").arg("-v").output().is_ok_and(|o| o.status.success());
         let ci = std::env::var("CI").is_ok_and(|v| v == "true");
-        let forced_off = std::env::var("JSIMD_FORCENONE").is_ok_and(|v| v == "1");
-        if (nasm || ci) && !forced_off {
+        if nasm || ci {
             assert!(simd(), "libjpeg-turbo was built without its SIMD code (nasm: {nasm})");
         }
     }
