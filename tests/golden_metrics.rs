@@ -33,9 +33,31 @@ fn skeleton_2d() -> Vec<[f64; 2]> {
     skeleton_3d().iter().map(|p| [960.0 - 2000.0 * (p[1] - 1.0) / p[0], 900.0 - 2000.0 * p[2] / p[0]]).collect()
 }
 
-fn case<const D: usize>(name: &str, pred: &[[f64; D]], gt: &[[f64; D]], visible: &[bool], box_scale: f64) -> Value {
+/// A case; `labelled` gives Waymo's visibility codes (2 visible, 0 missing) unless `occluded`
+/// marks a labelled keypoint 1.
+fn case<const D: usize>(name: &str, pred: &[[f64; D]], gt: &[[f64; D]], labelled: &[bool], box_scale: f64) -> Value {
+    case_occluded(name, pred, gt, labelled, &[], box_scale)
+}
+
+fn case_occluded<const D: usize>(
+    name: &str,
+    pred: &[[f64; D]],
+    gt: &[[f64; D]],
+    labelled: &[bool],
+    occluded: &[usize],
+    box_scale: f64,
+) -> Value {
     let rows = |v: &[[f64; D]]| v.iter().map(|p| p.to_vec()).collect::<Vec<_>>();
-    json!({"name": name, "dim": D, "pred": rows(pred), "gt": rows(gt), "visible": visible, "box_scale": box_scale})
+    let visibility: Vec<u8> = labelled
+        .iter()
+        .enumerate()
+        .map(|(k, &l)| match (l, occluded.contains(&k)) {
+            (false, _) => 0,
+            (true, true) => 1,
+            (true, false) => 2,
+        })
+        .collect();
+    json!({"name": name, "dim": D, "pred": rows(pred), "gt": rows(gt), "visibility": visibility, "box_scale": box_scale})
 }
 
 /// The inputs: hand-checkable cases (perfect, exactly one or two OKS scales off, far off, nothing
@@ -65,8 +87,19 @@ fn inputs() -> Vec<Value> {
     let mixed_2d: Vec<[f64; 2]> =
         g2.iter().enumerate().map(|(k, p)| [p[0] + 1.5 * k as f64, p[1] - 3.0 + 0.7 * (k % 5) as f64]).collect();
 
+    // keypoint 5 occluded and one scale off, keypoint 6 missing from the labels and far off
+    let occluded_pred: Vec<[f64; 3]> = (0..K)
+        .map(|k| match k {
+            5 => [g3[k][0], g3[k][1] + OKS_SCALES[k] * s3, g3[k][2]],
+            6 => [g3[k][0] + 3.0, g3[k][1], g3[k][2]],
+            _ => g3[k],
+        })
+        .collect();
+    let but_6: Vec<bool> = (0..K).map(|k| k != 6).collect();
+
     vec![
         case("perfect_3d", &g3, &g3, &all, s3),
+        case_occluded("occluded_counts_missing_does_not_3d", &occluded_pred, &g3, &but_6, &[5], s3),
         case("one_scale_off_3d_three_invisible", &one_sigma, &g3, &some, s3),
         case("far_off_3d", &far, &g3, &all, s3),
         case("mixed_3d", &mixed_3d, &g3, &vis_mixed, s3),
@@ -90,7 +123,8 @@ fn points<const D: usize>(v: &Value) -> Vec<[f64; D]> {
 }
 
 fn evaluate(c: &Value) -> PersonEval {
-    let visible: Vec<bool> = c["visible"].as_array().unwrap().iter().map(|v| v.as_bool().unwrap()).collect();
+    // Waymo's mask: labelled, occluded (1) or visible (2)
+    let visible: Vec<bool> = c["visibility"].as_array().unwrap().iter().map(|v| v.as_u64().unwrap() > 0).collect();
     let s = c["box_scale"].as_f64().unwrap();
     match c["dim"].as_u64() {
         Some(2) => evaluate_person(&points::<2>(&c["pred"]), &points::<2>(&c["gt"]), &visible, s),
@@ -170,7 +204,7 @@ fn golden_file_matches_its_generator_and_hand_values() {
     for (g, f) in golden["cases"].as_array().unwrap().iter().zip(fresh["cases"].as_array().unwrap()) {
         let name = f["name"].as_str().unwrap();
         assert_eq!(g["name"], f["name"], "golden file is stale: regenerate it");
-        assert_eq!(g["visible"], f["visible"], "{name}: stale visibility");
+        assert_eq!(g["visibility"], f["visibility"], "{name}: stale visibility");
         assert_close(&g["oks"], &f["oks"], name);
     }
     let by_name = |n: &str| golden["cases"].as_array().unwrap().iter().find(|c| c["name"] == n).unwrap().clone();
@@ -178,6 +212,13 @@ fn golden_file_matches_its_generator_and_hand_values() {
     assert_eq!(by_name("perfect_3d")["mpjpe"], json!(0.0));
     assert_close(&by_name("one_scale_off_3d_three_invisible")["oks"], &json!((-0.5f64).exp()), "one scale");
     assert!(by_name("one_scale_off_3d_three_invisible")["per_keypoint_oks"][5].is_null());
+    // by hand: 11 exact keypoints and the occluded one at one scale (OKS e^-½) over 12 labelled;
+    // its error alone over 12 for MPJPE; the missing keypoint's 3 m count nowhere
+    let occ = by_name("occluded_counts_missing_does_not_3d");
+    assert_close(&occ["oks"], &json!((11.0 + (-0.5f64).exp()) / 12.0), "occluded oks");
+    assert_close(&occ["mpjpe"], &json!(OKS_SCALES[5] * (0.6f64 * 0.5 * 1.75).cbrt() / 12.0), "occluded mpjpe");
+    assert_close(&occ["per_keypoint_oks"][5], &json!((-0.5f64).exp()), "occluded keypoint");
+    assert!(occ["per_keypoint_oks"][6].is_null());
     assert_close(&by_name("two_scales_off_2d")["oks"], &json!((-2.0f64).exp()), "two scales");
     assert_close(&by_name("far_off_3d")["mpjpe"], &json!(2.0), "far mpjpe");
     assert!(by_name("far_off_3d")["oks"].as_f64().unwrap() < 1e-10);

@@ -289,3 +289,40 @@ fn unusable_arguments_are_refused() {
     a.count = 0;
     assert!(simulate(a).is_err());
 }
+
+#[test]
+fn every_3d_keypoint_and_every_2d_keypoint_in_the_image_is_labelled_occluded_or_visible() {
+    let dir = run_once();
+    let mut sh = open_shard(dir);
+    let (v2, o2, v3, o3, true2d, wh) = (
+        sh.u8("kp2d_visible"),
+        sh.u8("kp2d_occluded"),
+        sh.u8("kp3d_visible"),
+        sh.u8("kp3d_occluded"),
+        sh.f32("kp2d_image_true"),
+        sh.i32("image_size_wh"),
+    );
+    let (mut occluded_3d, mut occluded_2d) = (0, 0);
+    for i in 0..COUNT {
+        for k in 0..13 {
+            assert_eq!(v3[[i, k]] + o3[[i, k]], 1, "sample {i} kp {k}: every 3D keypoint is labelled, once");
+            let (u, v) = (true2d[[i, k, 0]], true2d[[i, k, 1]]);
+            let inside = u >= 0.0 && v >= 0.0 && u < wh[[i, 0]] as f32 && v < wh[[i, 1]] as f32;
+            assert_eq!(v2[[i, k]] + o2[[i, k]], u8::from(inside), "sample {i} kp {k}: 2D labelled iff in the image");
+            // the camera's visibility implies the 3D one
+            assert!(v2[[i, k]] <= v3[[i, k]]);
+            occluded_3d += o3[[i, k]] as usize;
+            occluded_2d += o2[[i, k]] as usize;
+        }
+    }
+    assert!(occluded_3d > 0 && occluded_2d > occluded_3d, "{occluded_3d} occluded in 3D, {occluded_2d} in 2D");
+    // request fixtures carry the same flags
+    let frame: Frame = serde_json::from_slice(&std::fs::read(dir.join("requests/frame-000000.json")).unwrap()).unwrap();
+    for p in &frame.persons {
+        let gt = p.ground_truth.as_ref().unwrap();
+        let k3 = gt.keypoints_3d.as_ref().unwrap();
+        assert!(k3.visibility().iter().all(|v| v.labelled()), "{}: every 3D keypoint labelled", p.id);
+        assert_eq!(k3.occluded.len(), 13);
+        assert_eq!(gt.keypoints_2d.as_ref().unwrap().occluded.len(), 13);
+    }
+}

@@ -104,6 +104,19 @@ fn round_trip(alt: bool) {
         close(&pick("box2d"), &s.box2d, 1e-3, "box2d");
         close(&pick("kp2d"), &s.kp2d.concat(), 1e-3, "kp2d");
         close(&pick("kp3d_vehicle"), &s.kp3d_vehicle.concat(), 1e-5, "kp3d_vehicle");
+        // Waymo's is_occluded comes through: the same visible and occluded keypoints, and every 3D
+        // keypoint labelled, as the simulator labels them
+        let flags = |name: &str| {
+            let mut npz =
+                ndarray_npy::NpzReader::new(std::fs::File::open(out.join("shards/shard-00000.npz")).unwrap()).unwrap();
+            let arr: ndarray::ArrayD<u8> = npz.by_name(name).unwrap();
+            arr.index_axis(ndarray::Axis(0), i).iter().copied().collect::<Vec<u8>>()
+        };
+        assert_eq!(flags("kp2d_visible"), s.kp2d_visible, "kp2d_visible of sample {i}");
+        assert_eq!(flags("kp2d_occluded"), s.kp2d_occluded, "kp2d_occluded of sample {i}");
+        assert_eq!(flags("kp3d_visible"), s.kp3d_visible, "kp3d_visible of sample {i}");
+        assert_eq!(flags("kp3d_occluded"), s.kp3d_occluded, "kp3d_occluded of sample {i}");
+        assert!(s.kp3d_visible.iter().zip(&s.kp3d_occluded).all(|(v, o)| v + o == 1));
         close(&pick("crop"), &s.crop, 1e-3, "crop");
         // Same crops: the same JPEG bytes went through the same crop.
         let img: Vec<u8> = {
@@ -297,6 +310,12 @@ fn eval_score_and_waymo_metrics_run_on_simulated_segments() {
     assert_eq!(r["frames"], sum.fixtures);
     assert_eq!(r["failed_frames"], 0);
     assert!(r["metrics"]["all"]["count_3d"].as_u64().unwrap() > 0, "{r}");
+    // occluded 3D keypoints are labelled, so they count: the headline pools visible and occluded
+    let (all, vis, occ) = (&r["metrics"]["all"], &r["breakdown"]["visible"], &r["breakdown"]["occluded"]);
+    assert!(occ["count_3d"].as_u64().unwrap() > 0, "{r}");
+    let mpjpe = |m: &serde_json::Value| m["mpjpe_3d_m"].as_f64().unwrap();
+    let (lo, hi) = (mpjpe(vis).min(mpjpe(occ)), mpjpe(vis).max(mpjpe(occ)));
+    assert!(lo < mpjpe(all) && mpjpe(all) < hi, "the headline lies between its breakdowns: {r}");
     // Batch scoring writes lidar_hkp-shaped predictions that `waymo eval` scores.
     let pred = tempfile::tempdir().unwrap();
     let (root, pred_dir) = (sim.root.to_str().unwrap(), pred.path().to_str().unwrap());

@@ -32,6 +32,7 @@ from posefuse_train.config import CameraNetConfig, PointNetConfig
 from posefuse_train.export import camera_from_checkpoint, export_bundle, export_onnx, measure_latency
 from posefuse_train.fusion import smoothed
 from posefuse_train.keypoints import K
+from posefuse_train.metrics import labelled
 from posefuse_train.train import (
     TrainCameraConfig,
     TrainPointConfig,
@@ -57,7 +58,7 @@ ROWS = {
 
 def label_quality(lab: dict, d: dict) -> dict:
     """Diagnostics only (never used for training): pseudo-label error against the 3D truth."""
-    ok = lab["visible"] & (d["kp3d_visible"] > 0)
+    ok = lab["visible"] & labelled(d, 3)
     err = np.linalg.norm(lab["kp3d"] - d["kp3d"], axis=2)[ok]
     return {"mean_error_m": float(err.mean()) if err.size else None, "labels": int(ok.sum())}
 

@@ -23,6 +23,7 @@ import numpy as np
 import torch
 
 from posefuse_train import data as data_mod
+from posefuse_train import metrics
 from posefuse_train.camera_net import CameraNet
 from posefuse_train.config import CameraNetConfig
 from posefuse_train.evaluate import camera_only, evaluate
@@ -35,7 +36,7 @@ def pck_2d(pred_uv, data, frac: float) -> float:
     """Fraction of visible keypoints whose decoded model-px position is within frac*S of the label."""
     s = data["image"].shape[1]
     d = np.linalg.norm(pred_uv - data["kp2d"], axis=2)
-    vis = data["kp2d_visible"] > 0
+    vis = metrics.labelled(data, 2)
     return float((d[vis] <= frac * s).mean())
 
 

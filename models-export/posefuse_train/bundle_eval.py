@@ -24,6 +24,7 @@ EVAL_KEYS = (
     "points_count",
     "kp3d",
     "kp3d_visible",
+    "kp3d_occluded",
     "box3d",
     "box2d",
     "frame_yaw",
@@ -31,6 +32,7 @@ EVAL_KEYS = (
     "extrinsic",
     "kp2d_image_true",
     "kp2d_visible",
+    "kp2d_occluded",
 )
 
 

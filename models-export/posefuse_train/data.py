@@ -18,10 +18,12 @@ KEYS = (
     "serve_uv",
     "kp2d",
     "kp2d_visible",
+    "kp2d_occluded",
     "kp2d_image_true",
     "kp3d",
     "kp3d_vehicle",
     "kp3d_visible",
+    "kp3d_occluded",
     "box3d",
     "box2d",
     "crop",
@@ -58,7 +60,7 @@ def load(root: str | Path, limit: int | None = None) -> tuple[dict, PipelineConf
         with np.load(path) as z:
             missing = [k for k in KEYS if k not in z.files]
             if missing:
-                raise KeyError(f"{path}: missing keys {missing}")
+                raise KeyError(f"{path}: missing keys {missing} (from an older posefuse)")
             m = len(z["points_count"])
             take = m if limit is None else min(m, limit - total)
             for k in KEYS:

@@ -27,17 +27,24 @@ def with_fallback(pred: np.ndarray, camera_pred: np.ndarray, data: dict, cfg: Pi
 
 
 def evaluate(pred_local: np.ndarray, data: dict, cfg: PipelineConfig) -> dict:
-    """MetricsReport-shaped dict for predictions in model-input coordinates."""
-    e3 = metrics.evaluate_persons(
-        pred_local, data["kp3d"], data["kp3d_visible"] > 0, metrics.box_scale_3d(data["box3d"])
-    )
+    """MetricsReport-shaped dict for predictions in model-input coordinates, every labelled
+    keypoint counted (Waymo's convention), with `breakdown`: the same on the visible keypoints
+    only and on the occluded ones only."""
     vehicle = metrics.local_to_vehicle(pred_local, data["box3d"], data["frame_yaw"])
     px = metrics.project(vehicle, data["intrinsic"], data["extrinsic"])
-    e2 = metrics.evaluate_persons(
-        px, data["kp2d_image_true"], data["kp2d_visible"] > 0, metrics.box_scale_2d(data["box2d"])
-    )
-    report = metrics.report(e3, e2)
-    report["left_right_swap_rate"] = left_right_swap_rate(pred_local, data["kp3d"], data["kp3d_visible"] > 0)
+    s3, s2 = metrics.box_scale_3d(data["box3d"]), metrics.box_scale_2d(data["box2d"])
+
+    def scored(mask3, mask2) -> dict:
+        e3 = metrics.evaluate_persons(pred_local, data["kp3d"], mask3, s3)
+        e2 = metrics.evaluate_persons(px, data["kp2d_image_true"], mask2, s2)
+        return metrics.report(e3, e2)
+
+    report = scored(metrics.labelled(data, 3), metrics.labelled(data, 2))
+    report["breakdown"] = {
+        "visible": scored(data["kp3d_visible"] > 0, data["kp2d_visible"] > 0),
+        "occluded": scored(data["kp3d_occluded"] > 0, data["kp2d_occluded"] > 0),
+    }
+    report["left_right_swap_rate"] = left_right_swap_rate(pred_local, data["kp3d"], metrics.labelled(data, 3))
     return report
 
 

@@ -30,6 +30,7 @@ from . import __version__
 from .camera_net import CameraNet
 from .config import CameraNetConfig, PipelineConfig, PointNetConfig
 from .keypoints import NAMES, WAYMO_TYPES, K
+from .metrics import CONVENTION
 from .point_net import PointNet, PointNetExport
 
 OPSET = 17
@@ -182,7 +183,10 @@ def export_bundle(
                 "config": {**(training or {}).get("config", {}), "onnx_parity_max_abs_diff": parity},
                 "trained": bool(trained),
             },
-            "metrics": {"held_out": metrics or {"fusion": {}, "lidar": {}, "camera": {}}},
+            "metrics": {
+                "held_out": metrics or {"fusion": {}, "lidar": {}, "camera": {}},
+                "convention": CONVENTION,
+            },
         }
         with open(tmp / "manifest.json", "w") as f:
             json.dump(manifest, f, indent=2)

@@ -36,6 +36,7 @@ from . import __version__, bundle_eval, distributed
 from . import recipe as recipes
 from .camera_net import CameraNet
 from .export import camera_from_checkpoint, export_bundle, load_checkpoint, point_from_checkpoint
+from .metrics import CONVENTION
 from .shards import ShardSet
 from .train import RunOptions, Stopped, checkpoint, stream_labels, train_camera, train_point
 
@@ -310,7 +311,7 @@ def _export(a, recipe, work, camera: CameraNet, nets, pipeline, train, test, dev
         "finished": dt.datetime.now(dt.timezone.utc).strftime("%Y-%m-%dT%H:%M:%SZ"),
         "time_s": {"held_out_eval_s": eval_s},
     }
-    manifest["metrics"] = {"held_out": metrics}
+    manifest["metrics"] = {"held_out": metrics, "convention": CONVENTION}
     (staged / "manifest.json").write_text(json.dumps(manifest, indent=2) + "\n")
     out = Path(a.out)
     tmp = out.with_name(out.name + ".partial")

@@ -2,8 +2,9 @@
 tests/golden/metrics.json).
 
 A prediction of NaN is a missing keypoint: OKS 0, left out of MPJPE, fails PCK, costs the PEM clip.
-MPJPE, PCK and PEM pool every visible keypoint of every person; OKS/ACC counts persons; a person
-without a visible keypoint is skipped."""
+Which keypoints count is the caller's mask: every labelled keypoint, occluded or not (Waymo's
+convention, `labelled`). MPJPE, PCK and PEM pool every counted keypoint of every person; OKS/ACC
+counts persons; a person without a counted keypoint is skipped."""
 
 from __future__ import annotations
 
@@ -13,7 +14,15 @@ from .keypoints import NAMES, OKS_SCALES, K
 
 THRESHOLDS = np.array([(50 + 5 * i) / 100.0 for i in range(10)])
 PCK_THRESHOLDS_3D_M = (0.1, 0.2)
+# Which keypoints a bundle's recorded metrics count (manifest `metrics.convention`).
+CONVENTION = "waymo: every labelled keypoint, occluded included"
 PEM_CLIP_M = 0.25
+
+
+def labelled(data: dict, dim: int) -> np.ndarray:
+    """Waymo's mask over a shard's `kp{dim}d_visible` / `kp{dim}d_occluded`: labelled, occluded
+    or not (docs/DATA.md)."""
+    return (data[f"kp{dim}d_visible"] > 0) | (data[f"kp{dim}d_occluded"] > 0)
 
 
 def keypoint_oks(d, type_scale, box_scale):

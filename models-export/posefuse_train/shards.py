@@ -41,7 +41,7 @@ class ShardSet:
             with np.load(path) as z:
                 missing = [k for k in KEYS if k not in z.files]
                 if missing:
-                    raise KeyError(f"{path}: missing keys {missing}")
+                    raise KeyError(f"{path}: missing keys {missing} (from an older posefuse)")
                 pc = z["points_count"]
                 for info in z.zip.infolist():  # uncompressed members: file_size is the array's bytes
                     key = info.filename.removesuffix(".npy")

@@ -95,6 +95,7 @@ def make_sample(rng, cfg: PipelineConfig, cap: int):
     pts_xyz[:count], pts_uv_full[:count] = pts, pts_uv
     sel = np.concatenate([np.arange(min(count, n)), rng.integers(0, count, max(0, n - count))])[:n]
     vis = (rng.uniform(size=K) > 0.1).astype(np.uint8)
+    occluded = (1 - vis).astype(np.uint8)  # every keypoint labelled, as the simulator labels 3D
     return {
         "image": image,
         "points_xyz": pts_xyz,
@@ -104,10 +105,12 @@ def make_sample(rng, cfg: PipelineConfig, cap: int):
         "serve_uv": pts_uv_full[sel],
         "kp2d": (kp_uv + rng.normal(0, 0.3, kp_uv.shape)).astype(np.float32),
         "kp2d_visible": vis,
+        "kp2d_occluded": occluded,
         "kp2d_image_true": kp_img.astype(np.float32),
         "kp3d": kp_local.astype(np.float32),
         "kp3d_vehicle": kp_vehicle.astype(np.float32),
         "kp3d_visible": vis,
+        "kp3d_occluded": occluded,
         "box3d": np.array([*centre, 0.6, 0.7, 1.9, heading], np.float32),
         "box2d": box2d.astype(np.float32),
         "crop": np.array([x0, y0, scale], np.float32),

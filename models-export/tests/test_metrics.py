@@ -63,7 +63,7 @@ def test_metrics_match_the_server_golden_cases():
     for i, c in enumerate(g["cases"]):
         pred = np.array([[np.nan if v is None else v for v in p] for p in c["pred"]], np.float64)[None]
         gt = np.array(c["gt"], np.float64)[None]
-        vis = np.array(c["visible"], bool)[None]
+        vis = (np.array(c["visibility"]) > 0)[None]  # Waymo's mask: occluded (1) and visible (2)
         e = metrics.evaluate_persons(pred, gt, vis, np.array([c["box_scale"]]))
         if c["oks"] is None:
             assert np.isnan(e["oks"][0]), i

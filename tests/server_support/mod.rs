@@ -118,11 +118,12 @@ pub fn ground_truth(b: &Box3d) -> GroundTruth {
     let xyz: Vec<[f64; 3]> = local.iter().map(|q| frame.to_vehicle(*q)).collect();
     let cam = camera();
     let proj: Vec<_> = xyz.iter().map(|p| cam.project(*p)).collect();
-    let keypoints_2d = proj
-        .iter()
-        .all(|p| p.in_front)
-        .then(|| Keypoints2d { uv: proj.iter().map(|p| p.uv).collect(), visible: vec![true; 13] });
-    GroundTruth { keypoints_3d: Some(Keypoints3d { xyz, visible: vec![true; 13] }), keypoints_2d }
+    let keypoints_2d = proj.iter().all(|p| p.in_front).then(|| Keypoints2d {
+        uv: proj.iter().map(|p| p.uv).collect(),
+        visible: vec![true; 13],
+        occluded: vec![],
+    });
+    GroundTruth { keypoints_3d: Some(Keypoints3d { xyz, visible: vec![true; 13], occluded: vec![] }), keypoints_2d }
 }
 
 /// A person in view with plenty of points (fusion), given the box.

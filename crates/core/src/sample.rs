@@ -28,11 +28,16 @@ pub struct Sample {
     pub serve_xyz: Vec<[f32; 3]>,
     pub serve_uv: Vec<[f32; 2]>,
     pub kp2d: [[f32; 2]; K],
+    /// Labelled and not occluded: the training target.
     pub kp2d_visible: [u8; K],
+    /// Labelled but occluded: scored, not trained on.
+    pub kp2d_occluded: [u8; K],
     pub kp2d_image_true: [[f32; 2]; K],
     pub kp3d: [[f32; 3]; K],
     pub kp3d_vehicle: [[f32; 3]; K],
     pub kp3d_visible: [u8; K],
+    /// Labelled but occluded; every labelled keypoint (visible or occluded) counts in the metrics.
+    pub kp3d_occluded: [u8; K],
     pub box3d: [f32; 7],
     pub box2d: [f32; 4],
     pub crop: [f32; 3],
@@ -174,6 +179,7 @@ impl ShardWriter {
         add(&mut npz, "serve_uv", &[m, n, 2], b.iter().flat_map(|x| x.serve_uv.iter().flatten().copied()).collect())?;
         add(&mut npz, "kp2d", &[m, K, 2], b.iter().flat_map(|x| x.kp2d.iter().flatten().copied()).collect())?;
         add(&mut npz, "kp2d_visible", &[m, K], b.iter().flat_map(|x| x.kp2d_visible).collect())?;
+        add(&mut npz, "kp2d_occluded", &[m, K], b.iter().flat_map(|x| x.kp2d_occluded).collect())?;
         add(
             &mut npz,
             "kp2d_image_true",
@@ -188,6 +194,7 @@ impl ShardWriter {
             b.iter().flat_map(|x| x.kp3d_vehicle.iter().flatten().copied()).collect(),
         )?;
         add(&mut npz, "kp3d_visible", &[m, K], b.iter().flat_map(|x| x.kp3d_visible).collect())?;
+        add(&mut npz, "kp3d_occluded", &[m, K], b.iter().flat_map(|x| x.kp3d_occluded).collect())?;
         add(&mut npz, "box3d", &[m, 7], b.iter().flat_map(|x| x.box3d).collect())?;
         add(&mut npz, "box2d", &[m, 4], b.iter().flat_map(|x| x.box2d).collect())?;
         add(&mut npz, "crop", &[m, 3], b.iter().flat_map(|x| x.crop).collect())?;

@@ -352,19 +352,20 @@ pub fn evaluate(dataset: &Path, predictions: &Path) -> posefuse_data::error::Res
                 continue;
             };
             let g = kp3d_of(kps);
-            let visible: Vec<bool> = g.iter().map(Option::is_some).collect();
-            if !visible.iter().any(|v| *v) {
+            // Waymo's mask: every labelled keypoint, occluded or not
+            let labelled: Vec<bool> = g.iter().map(Option::is_some).collect();
+            if !labelled.iter().any(|v| *v) {
                 continue;
             }
-            let gt_xyz: Vec<[f64; 3]> = g.iter().map(|x| x.unwrap_or([0.0; 3])).collect();
+            let gt_xyz: Vec<[f64; 3]> = g.iter().map(|x| x.map_or([0.0; 3], |x| x.at)).collect();
             let p: Vec<Option<[f64; 3]>> = match pred.get(&(*ts, id.clone())) {
-                Some(pk) => kp3d_of(pk).to_vec(),
+                Some(pk) => kp3d_of(pk).iter().map(|x| x.map(|x| x.at)).collect(),
                 None => {
                     missing += 1;
                     vec![None; K]
                 }
             };
-            let e = evaluate_person_partial(&p, &gt_xyz, &visible, box_scale_3d(&b.box3d))?;
+            let e = evaluate_person_partial(&p, &gt_xyz, &labelled, box_scale_3d(&b.box3d))?;
             acc.add_eval_3d(&e);
         }
     }

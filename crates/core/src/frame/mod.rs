@@ -213,20 +213,87 @@ pub struct GroundTruth {
     pub keypoints_2d: Option<Keypoints2d>,
 }
 
-/// 13 3D keypoints with visibility.
+/// 13 3D keypoints with Waymo's visibility: a keypoint is labelled when it is `visible` or
+/// `occluded` (never both), and every labelled keypoint counts in the metrics (docs/DATA.md).
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Keypoints3d {
     pub xyz: Vec<[f64; 3]>,
+    /// Labelled and not occluded.
     pub visible: Vec<bool>,
+    /// Labelled but occluded (Waymo's `is_occluded`); empty: no occluded label.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub occluded: Vec<bool>,
 }
 
-/// 13 2D keypoints with visibility (false: occluded or not labelled).
+/// 13 2D keypoints with Waymo's visibility, as [`Keypoints3d`].
 #[derive(Debug, Clone, Serialize, Deserialize, PartialEq, utoipa::ToSchema)]
 #[serde(deny_unknown_fields)]
 pub struct Keypoints2d {
     pub uv: Vec<[f64; 2]>,
+    /// Labelled and not occluded.
     pub visible: Vec<bool>,
+    /// Labelled but occluded (Waymo's `is_occluded`); empty: no occluded label.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub occluded: Vec<bool>,
+}
+
+impl Keypoints3d {
+    /// Per-keypoint visibility in Waymo's terms.
+    pub fn visibility(&self) -> Vec<Visibility> {
+        Visibility::of(&self.visible, &self.occluded)
+    }
+}
+
+impl Keypoints2d {
+    /// Per-keypoint visibility in Waymo's terms.
+    pub fn visibility(&self) -> Vec<Visibility> {
+        Visibility::of(&self.visible, &self.occluded)
+    }
+}
+
+/// A ground-truth keypoint's label, coded as Waymo's toolkit codes it (`keypoint_data.py`:
+/// 0 missing, 1 occluded, 2 visible).
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Hash, PartialOrd, Ord)]
+pub enum Visibility {
+    Missing = 0,
+    Occluded = 1,
+    Visible = 2,
+}
+
+impl Visibility {
+    /// From the `visible` and `occluded` flags (`occluded` may be empty: none occluded).
+    pub fn of(visible: &[bool], occluded: &[bool]) -> Vec<Visibility> {
+        visible
+            .iter()
+            .enumerate()
+            .map(|(k, &v)| match (v, occluded.get(k).copied().unwrap_or(false)) {
+                (true, _) => Visibility::Visible,
+                (false, true) => Visibility::Occluded,
+                (false, false) => Visibility::Missing,
+            })
+            .collect()
+    }
+
+    /// Whether the keypoint counts in the metrics: labelled, occluded or not (Waymo's `mask`).
+    pub fn labelled(self) -> bool {
+        self != Visibility::Missing
+    }
+
+    /// Waymo's code.
+    pub fn code(self) -> u8 {
+        self as u8
+    }
+
+    /// The mask of the keypoints with exactly this visibility.
+    pub fn select(all: &[Visibility], which: Visibility) -> Vec<bool> {
+        all.iter().map(|&v| v == which).collect()
+    }
+
+    /// The metrics' mask: every labelled keypoint.
+    pub fn labelled_mask(all: &[Visibility]) -> Vec<bool> {
+        all.iter().map(|v| v.labelled()).collect()
+    }
 }
 
 impl Points {
@@ -281,6 +348,17 @@ fn finite(field: &str, v: f64) -> Result<()> {
         Ok(())
     } else {
         Err(Error::field(field, "is NaN or infinite"))
+    }
+}
+
+/// `occluded` is empty or one flag per keypoint, and no keypoint is both visible and occluded.
+fn check_occluded(field: &str, visible: &[bool], occluded: &[bool]) -> Result<()> {
+    if !occluded.is_empty() && occluded.len() != K {
+        return Err(Error::field(format!("{field}.occluded"), format!("needs {K} flags or none")));
+    }
+    match visible.iter().zip(occluded).position(|(&v, &o)| v && o) {
+        Some(k) => Err(Error::field(format!("{field}.occluded[{k}]"), "a keypoint is either visible or occluded")),
+        None => Ok(()),
     }
 }
 
@@ -359,6 +437,7 @@ impl GroundTruth {
                     format!("needs {K} keypoints and {K} visibility flags"),
                 ));
             }
+            check_occluded(&format!("{field}.keypoints_3d"), &k3.visible, &k3.occluded)?;
             for (i, p) in k3.xyz.iter().enumerate() {
                 for v in p {
                     finite(&format!("{field}.keypoints_3d.xyz[{i}]"), *v)?;
@@ -372,6 +451,7 @@ impl GroundTruth {
                     format!("needs {K} keypoints and {K} visibility flags"),
                 ));
             }
+            check_occluded(&format!("{field}.keypoints_2d"), &k2.visible, &k2.occluded)?;
             for (i, p) in k2.uv.iter().enumerate() {
                 for v in p {
                     finite(&format!("{field}.keypoints_2d.uv[{i}]"), *v)?;
@@ -526,10 +606,38 @@ mod tests {
         assert_eq!(field_of(f.validate()), "persons[1].id");
         let mut f = frame();
         f.persons[0].ground_truth = Some(GroundTruth {
-            keypoints_3d: Some(Keypoints3d { xyz: vec![[0.0; 3]; 12], visible: vec![true; 12] }),
+            keypoints_3d: Some(Keypoints3d { xyz: vec![[0.0; 3]; 12], visible: vec![true; 12], occluded: vec![] }),
             keypoints_2d: None,
         });
         assert_eq!(field_of(f.validate()), "persons[0].ground_truth.keypoints_3d");
+        let gt = |visible: Vec<bool>, occluded: Vec<bool>| GroundTruth {
+            keypoints_3d: None,
+            keypoints_2d: Some(Keypoints2d { uv: vec![[1.0; 2]; K], visible, occluded }),
+        };
+        let mut f = frame();
+        f.persons[0].ground_truth = Some(gt(vec![true; K], vec![false; K - 1]));
+        assert_eq!(field_of(f.validate()), "persons[0].ground_truth.keypoints_2d.occluded");
+        let mut both = vec![false; K];
+        both[4] = true;
+        f.persons[0].ground_truth = Some(gt(both.clone(), both));
+        assert_eq!(field_of(f.validate()), "persons[0].ground_truth.keypoints_2d.occluded[4]");
+        let mut occluded = vec![false; K];
+        occluded[4] = true;
+        let visible: Vec<bool> = (0..K).map(|k| k != 4 && k != 5).collect();
+        f.persons[0].ground_truth = Some(gt(visible, occluded));
+        assert!(f.validate().is_ok());
+    }
+
+    #[test]
+    fn visibility_codes_are_waymos_and_occluded_keypoints_are_labelled() {
+        let v = Visibility::of(&[true, false, false, false], &[false, true, false]);
+        assert_eq!(v, [Visibility::Visible, Visibility::Occluded, Visibility::Missing, Visibility::Missing]);
+        assert_eq!(v.iter().map(|x| x.code()).collect::<Vec<_>>(), [2, 1, 0, 0]);
+        assert_eq!(Visibility::labelled_mask(&v), [true, true, false, false]);
+        assert_eq!(Visibility::select(&v, Visibility::Occluded), [false, true, false, false]);
+        assert_eq!(Visibility::select(&v, Visibility::Visible), [true, false, false, false]);
+        // frames written before occlusion flags existed: every labelled keypoint was visible
+        assert_eq!(Visibility::of(&[true, false], &[]), [Visibility::Visible, Visibility::Missing]);
     }
 
     #[test]

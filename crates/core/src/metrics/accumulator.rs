@@ -18,18 +18,18 @@ pub const PCK_THRESHOLDS_3D_M: [f64; 2] = [0.1, 0.2];
 #[derive(Debug, Clone, Default, PartialEq)]
 struct Sums {
     persons: usize,
-    /// Persons without a visible ground-truth keypoint, excluded from every metric.
+    /// Persons without a labelled ground-truth keypoint, excluded from every metric.
     skipped: usize,
     oks_sum: f64,
     oks_hits: [usize; OKS_THRESHOLD_COUNT],
     error_sum: f64,
     errors: usize,
-    /// Visible keypoints (denominator of PCK and PEM).
-    visible: usize,
+    /// Labelled keypoints (denominator of PCK and PEM).
+    labelled: usize,
     pck_hits: [usize; PCK_THRESHOLDS_3D_M.len()],
     pem_sum: f64,
     keypoint_oks_sum: [f64; K],
-    keypoint_visible: [usize; K],
+    keypoint_labelled: [usize; K],
 }
 
 impl Sums {
@@ -46,8 +46,8 @@ impl Sums {
         for k in 0..K {
             let Some(kp_oks) = e.per_keypoint_oks[k] else { continue };
             self.keypoint_oks_sum[k] += kp_oks;
-            self.keypoint_visible[k] += 1;
-            self.visible += 1;
+            self.keypoint_labelled[k] += 1;
+            self.labelled += 1;
             self.pem_sum += super::person::pem_cost(e.errors[k]);
             if let Some(err) = e.errors[k] {
                 self.error_sum += err;
@@ -65,7 +65,7 @@ impl Sums {
         self.oks_sum += o.oks_sum;
         self.error_sum += o.error_sum;
         self.errors += o.errors;
-        self.visible += o.visible;
+        self.labelled += o.labelled;
         self.pem_sum += o.pem_sum;
         for (a, b) in self.oks_hits.iter_mut().zip(o.oks_hits) {
             *a += b;
@@ -76,7 +76,7 @@ impl Sums {
         for (a, b) in self.keypoint_oks_sum.iter_mut().zip(o.keypoint_oks_sum) {
             *a += b;
         }
-        for (a, b) in self.keypoint_visible.iter_mut().zip(o.keypoint_visible) {
+        for (a, b) in self.keypoint_labelled.iter_mut().zip(o.keypoint_labelled) {
             *a += b;
         }
     }
@@ -89,7 +89,7 @@ impl Sums {
         (0..K)
             .map(|k| KeypointOks {
                 name: NAMES[k].to_string(),
-                oks: ratio(self.keypoint_oks_sum[k], self.keypoint_visible[k]),
+                oks: ratio(self.keypoint_oks_sum[k], self.keypoint_labelled[k]),
             })
             .collect()
     }
@@ -117,17 +117,17 @@ impl MetricsAccumulator {
         &mut self,
         pred_vehicle: &[[f64; 3]],
         gt_vehicle: &[[f64; 3]],
-        visible: &[bool],
+        labelled: &[bool],
         b: &Box3d,
     ) -> Result<()> {
-        let e = evaluate_person(pred_vehicle, gt_vehicle, visible, box_scale_3d(b))?;
+        let e = evaluate_person(pred_vehicle, gt_vehicle, labelled, box_scale_3d(b))?;
         self.add_eval_3d(&e);
         Ok(())
     }
 
     /// Adds a 2D prediction (image pixels) scored against its ground truth and 2D box.
-    pub fn add_2d(&mut self, pred_px: &[[f64; 2]], gt_px: &[[f64; 2]], visible: &[bool], b: &Box2d) -> Result<()> {
-        let e = evaluate_person(pred_px, gt_px, visible, box_scale_2d(b))?;
+    pub fn add_2d(&mut self, pred_px: &[[f64; 2]], gt_px: &[[f64; 2]], labelled: &[bool], b: &Box2d) -> Result<()> {
+        let e = evaluate_person(pred_px, gt_px, labelled, box_scale_2d(b))?;
         self.add_eval_2d(&e);
         Ok(())
     }
@@ -138,10 +138,10 @@ impl MetricsAccumulator {
         camera: &Camera,
         pred_vehicle: &[[f64; 3]],
         gt_px: &[[f64; 2]],
-        visible: &[bool],
+        labelled: &[bool],
         b: &Box2d,
     ) -> Result<()> {
-        let e = evaluate_projected(camera, pred_vehicle, gt_px, visible, b)?;
+        let e = evaluate_projected(camera, pred_vehicle, gt_px, labelled, b)?;
         self.add_eval_2d(&e);
         Ok(())
     }
@@ -171,9 +171,9 @@ impl MetricsAccumulator {
             oks_acc_3d: a.oks_acc(),
             mean_oks_3d: ratio(a.oks_sum, a.persons),
             mpjpe_3d_m: ratio(a.error_sum, a.errors),
-            pck_3d_10cm: ratio(a.pck_hits[0] as f64, a.visible),
-            pck_3d_20cm: ratio(a.pck_hits[1] as f64, a.visible),
-            pem_3d_m: ratio(a.pem_sum, a.visible),
+            pck_3d_10cm: ratio(a.pck_hits[0] as f64, a.labelled),
+            pck_3d_20cm: ratio(a.pck_hits[1] as f64, a.labelled),
+            pem_3d_m: ratio(a.pem_sum, a.labelled),
             per_keypoint_oks_3d: a.per_keypoint(),
             count_2d: b.persons,
             skipped_2d: b.skipped,
@@ -185,22 +185,22 @@ impl MetricsAccumulator {
     }
 }
 
-/// Mean OKS of one keypoint over the persons where it is visible.
+/// Mean OKS of one keypoint over the persons where it is labelled.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct KeypointOks {
     /// Keypoint name (`keypoints::NAMES`).
     pub name: String,
-    /// `None` when the keypoint was never visible.
+    /// `None` when the keypoint was never labelled.
     pub oks: Option<f64>,
 }
 
-/// Evaluation results. Pooled metrics (MPJPE, PCK, PEM) average over all visible ground-truth
+/// Evaluation results. Pooled metrics (MPJPE, PCK, PEM) average over all labelled ground-truth
 /// keypoints of all persons; OKS/ACC counts persons. `None`: nothing to average over.
 #[derive(Debug, Clone, PartialEq, Serialize, Deserialize, utoipa::ToSchema)]
 pub struct MetricsReport {
-    /// Persons scored in 3D (with at least one visible 3D keypoint).
+    /// Persons scored in 3D (with at least one labelled 3D keypoint).
     pub count_3d: usize,
-    /// Persons without a visible 3D keypoint, left out.
+    /// Persons without a labelled 3D keypoint, left out.
     pub skipped_3d: usize,
     /// OKS/ACC in 3D (the paper's headline).
     pub oks_acc_3d: Option<f64>,
@@ -208,17 +208,17 @@ pub struct MetricsReport {
     pub mean_oks_3d: Option<f64>,
     /// MPJPE in 3D, metres.
     pub mpjpe_3d_m: Option<f64>,
-    /// Fraction of visible 3D keypoints within 0.1 m.
+    /// Fraction of labelled 3D keypoints within 0.1 m.
     pub pck_3d_10cm: Option<f64>,
-    /// Fraction of visible 3D keypoints within 0.2 m.
+    /// Fraction of labelled 3D keypoints within 0.2 m.
     pub pck_3d_20cm: Option<f64>,
     /// PEM, metres (errors clipped at 0.25 m, missing keypoints cost 0.25 m).
     pub pem_3d_m: Option<f64>,
     /// Per-keypoint mean OKS in 3D, in keypoint order.
     pub per_keypoint_oks_3d: Vec<KeypointOks>,
-    /// Persons scored in 2D (with at least one visible 2D keypoint).
+    /// Persons scored in 2D (with at least one labelled 2D keypoint).
     pub count_2d: usize,
-    /// Persons without a visible 2D keypoint, left out.
+    /// Persons without a labelled 2D keypoint, left out.
     pub skipped_2d: usize,
     /// OKS/ACC in 2D (OKS@2D when fed projected 3D predictions).
     pub oks_acc_2d: Option<f64>,
@@ -239,7 +239,7 @@ impl MetricsReport {
     pub fn table(&self) -> String {
         let mut rows: Vec<(String, String, String)> = vec![
             ("persons".into(), self.count_3d.to_string(), self.count_2d.to_string()),
-            ("skipped (no visible GT)".into(), self.skipped_3d.to_string(), self.skipped_2d.to_string()),
+            ("skipped (no labelled GT)".into(), self.skipped_3d.to_string(), self.skipped_2d.to_string()),
             ("OKS/ACC".into(), cell(self.oks_acc_3d, ""), cell(self.oks_acc_2d, "")),
             ("mean OKS".into(), cell(self.mean_oks_3d, ""), cell(self.mean_oks_2d, "")),
             ("MPJPE".into(), cell(self.mpjpe_3d_m, " m"), cell(self.mpjpe_2d_px, " px")),
@@ -272,7 +272,7 @@ mod tests {
         Box3d { center_x: 10.0, center_y: 0.0, center_z: 0.9, length, width, height, heading: 0.3 }
     }
 
-    /// Prediction (possibly missing), ground truth, visibility and box of one person.
+    /// Prediction (possibly missing), ground truth, labels and box of one person.
     type Labelled = (Vec<Option<[f64; 3]>>, Vec<[f64; 3]>, Vec<bool>, Box3d);
 
     /// Deterministic persons with varied errors, visibilities and a few missing predictions.
@@ -287,8 +287,8 @@ mod tests {
                         ((i + k) % 10 != 3).then(|| [gt[k][0] + e, gt[k][1] - 0.5 * e, gt[k][2]])
                     })
                     .collect();
-                let visible = (0..K).map(|k| i != 4 && (i * k) % 5 != 1).collect();
-                (pred, gt, visible, box3(0.5 + 0.05 * i as f64, 0.6, 1.7))
+                let labelled = (0..K).map(|k| i != 4 && (i * k) % 5 != 1).collect();
+                (pred, gt, labelled, box3(0.5 + 0.05 * i as f64, 0.6, 1.7))
             })
             .collect()
     }
@@ -350,7 +350,7 @@ mod tests {
 
     #[test]
     fn hand_computed_report_and_table() {
-        // one person, keypoints 0..3 visible: 0 and 1 exact, 2 at d = s (OKS e^-½), 3 at 0.3 m
+        // one person, keypoints 0..3 labelled: 0 and 1 exact, 2 at d = s (OKS e^-½), 3 at 0.3 m
         let b = box3(1.0, 1.0, 1.0);
         let gt = vec![[0.0; 3]; K];
         let mut pred = gt.clone();

@@ -1,9 +1,10 @@
 //! Per-person keypoint metrics and the pure pooled reductions over many persons.
 //!
-//! Pooling: MPJPE, PCK and PEM pool every visible ground-truth keypoint of every person (Waymo's
-//! convention: a mean weighted by the keypoint mask), so a person with 13 visible keypoints weighs
-//! 13 times one with a single visible keypoint. OKS is averaged per person first (OKS/ACC counts
-//! persons).
+//! Pooling: MPJPE, PCK and PEM pool every labelled ground-truth keypoint of every person, occluded
+//! or not (Waymo's convention: a mean weighted by the keypoint mask, which is 1 for occluded and
+//! visible keypoints), so a person with 13 labelled keypoints weighs 13 times one with a single
+//! labelled keypoint. OKS is averaged per person first (OKS/ACC counts persons). The mask is the
+//! caller's: `frame::Visibility::labelled_mask` gives Waymo's.
 
 use crate::error::{Error, Result};
 use crate::frame::{Box2d, Box3d};
@@ -40,7 +41,7 @@ pub fn box_scale_2d(b: &Box2d) -> f64 {
     (b.width * b.height).sqrt()
 }
 
-/// The PEM cost of one visible keypoint: its error clipped at [`PEM_CLIP_M`], or the clip itself
+/// The PEM cost of one labelled keypoint: its error clipped at [`PEM_CLIP_M`], or the clip itself
 /// when the prediction is missing.
 pub fn pem_cost(error: Option<f64>) -> f64 {
     error.map_or(PEM_CLIP_M, |e| e.min(PEM_CLIP_M))
@@ -49,36 +50,36 @@ pub fn pem_cost(error: Option<f64>) -> f64 {
 /// One person's evaluation against its ground truth.
 #[derive(Debug, Clone, PartialEq)]
 pub struct PersonEval {
-    /// Mean OKS over the keypoints visible in the ground truth; `None` when none is visible, in
+    /// Mean OKS over the keypoints labelled in the ground truth; `None` when none is labelled, in
     /// which case the person is excluded from every metric.
     pub oks: Option<f64>,
-    /// OKS of each keypoint; `None` where the ground truth is not visible. A missing prediction
+    /// OKS of each keypoint; `None` where the ground truth is not labelled. A missing prediction
     /// scores 0.
     pub per_keypoint_oks: [Option<f64>; K],
     /// Euclidean error of each keypoint (metres or pixels); `None` where the ground truth is not
-    /// visible or the prediction is missing.
+    /// labelled or the prediction is missing.
     pub errors: [Option<f64>; K],
 }
 
 impl PersonEval {
-    /// Whether keypoint `k` is visible in the ground truth.
-    pub fn visible(&self, k: usize) -> bool {
+    /// Whether keypoint `k` is labelled in the ground truth.
+    pub fn labelled(&self, k: usize) -> bool {
         self.per_keypoint_oks[k].is_some()
     }
 
-    /// Errors of the visible keypoints whose prediction exists.
-    pub fn visible_errors(&self) -> impl Iterator<Item = f64> + '_ {
+    /// Errors of the labelled keypoints whose prediction exists.
+    pub fn labelled_errors(&self) -> impl Iterator<Item = f64> + '_ {
         self.errors.iter().flatten().copied()
     }
 
-    /// PEM costs of the visible keypoints (missing predictions included).
+    /// PEM costs of the labelled keypoints (missing predictions included).
     pub fn pem_costs(&self) -> impl Iterator<Item = f64> + '_ {
-        (0..K).filter(|&k| self.visible(k)).map(|k| pem_cost(self.errors[k]))
+        (0..K).filter(|&k| self.labelled(k)).map(|k| pem_cost(self.errors[k]))
     }
 
-    /// This person's MPJPE (mean error over visible keypoints with a prediction).
+    /// This person's MPJPE (mean error over labelled keypoints with a prediction).
     pub fn mpjpe(&self) -> Option<f64> {
-        mean(self.visible_errors())
+        mean(self.labelled_errors())
     }
 }
 
@@ -101,40 +102,40 @@ fn all_finite<const D: usize>(p: &[f64; D]) -> bool {
 
 /// Evaluates one person whose every keypoint has a prediction.
 ///
-/// `pred`, `gt` and `visible` hold [`K`] entries in the project's keypoint order; `box_scale` is
+/// `pred`, `gt` and `labelled` hold [`K`] entries in the project's keypoint order; `box_scale` is
 /// [`box_scale_3d`] or [`box_scale_2d`] of the ground-truth box.
 pub fn evaluate_person<const D: usize>(
     pred: &[[f64; D]],
     gt: &[[f64; D]],
-    visible: &[bool],
+    labelled: &[bool],
     box_scale: f64,
 ) -> Result<PersonEval> {
     let pred: Vec<Option<[f64; D]>> = pred.iter().copied().map(Some).collect();
-    evaluate_person_partial(&pred, gt, visible, box_scale)
+    evaluate_person_partial(&pred, gt, labelled, box_scale)
 }
 
 /// Evaluates one person where some predictions may be missing (`None`): a missing prediction of a
-/// visible keypoint scores OKS 0, costs [`PEM_CLIP_M`] in PEM, fails PCK and is left out of MPJPE.
+/// labelled keypoint scores OKS 0, costs [`PEM_CLIP_M`] in PEM, fails PCK and is left out of MPJPE.
 pub fn evaluate_person_partial<const D: usize>(
     pred: &[Option<[f64; D]>],
     gt: &[[f64; D]],
-    visible: &[bool],
+    labelled: &[bool],
     box_scale: f64,
 ) -> Result<PersonEval> {
     check_len("pred", pred.len())?;
     check_len("gt", gt.len())?;
-    check_len("visible", visible.len())?;
+    check_len("labelled", labelled.len())?;
     if !(box_scale.is_finite() && box_scale > 0.0) {
         return Err(Error::field("box_scale", format!("must be positive and finite, got {box_scale}")));
     }
     let mut per_keypoint_oks = [None; K];
     let mut errors = [None; K];
     for k in 0..K {
-        if !visible[k] {
+        if !labelled[k] {
             continue;
         }
         if !all_finite(&gt[k]) {
-            return Err(Error::field(format!("gt[{k}]"), "visible keypoint is NaN or infinite"));
+            return Err(Error::field(format!("gt[{k}]"), "labelled keypoint is NaN or infinite"));
         }
         per_keypoint_oks[k] = Some(match pred[k] {
             None => 0.0,
@@ -158,14 +159,14 @@ pub fn evaluate_projected(
     camera: &Camera,
     pred_vehicle: &[[f64; 3]],
     gt_px: &[[f64; 2]],
-    visible: &[bool],
+    labelled: &[bool],
     box_2d: &Box2d,
 ) -> Result<PersonEval> {
     check_len("pred", pred_vehicle.len())?;
     if let Some(k) = pred_vehicle.iter().position(|p| !all_finite(p)) {
         return Err(Error::field(format!("pred[{k}]"), "is NaN or infinite"));
     }
-    evaluate_person_partial(&camera.project_points(pred_vehicle), gt_px, visible, box_scale_2d(box_2d))
+    evaluate_person_partial(&camera.project_points(pred_vehicle), gt_px, labelled, box_scale_2d(box_2d))
 }
 
 /// OKS/ACC: the mean over the 10 thresholds t of the fraction of persons with OKS ≥ t. `None` for
@@ -187,20 +188,20 @@ pub fn oks_acc(oks: &[f64]) -> Option<f64> {
     Some(sum / OKS_THRESHOLD_COUNT as f64)
 }
 
-/// MPJPE pooled over every visible keypoint (with a prediction) of every person.
+/// MPJPE pooled over every labelled keypoint (with a prediction) of every person.
 pub fn mpjpe(persons: &[PersonEval]) -> Option<f64> {
-    mean(persons.iter().flat_map(PersonEval::visible_errors))
+    mean(persons.iter().flat_map(PersonEval::labelled_errors))
 }
 
-/// PCK: the fraction of visible keypoints with error ≤ `threshold` (Waymo compares with ≤); a
+/// PCK: the fraction of labelled keypoints with error ≤ `threshold` (Waymo compares with ≤); a
 /// missing prediction is incorrect. Pooled over persons.
 pub fn pck(persons: &[PersonEval], threshold: f64) -> Option<f64> {
-    let hits = persons.iter().flat_map(|p| (0..K).filter(|&k| p.visible(k)).map(move |k| p.errors[k]));
+    let hits = persons.iter().flat_map(|p| (0..K).filter(|&k| p.labelled(k)).map(move |k| p.errors[k]));
     mean(hits.map(|e| if e.is_some_and(|e| e <= threshold) { 1.0 } else { 0.0 }))
 }
 
 /// PEM (Waymo 2023) with predictions already matched to ground-truth boxes: the pooled mean of
-/// [`pem_cost`] over visible keypoints.
+/// [`pem_cost`] over labelled keypoints.
 pub fn pem(persons: &[PersonEval]) -> Option<f64> {
     mean(persons.iter().flat_map(PersonEval::pem_costs))
 }
@@ -215,7 +216,7 @@ mod tests {
         vec![[0.0; 3]; K]
     }
 
-    /// Each visible keypoint k displaced by `f(k) · OKS_SCALES[k] · S3` along x.
+    /// Each labelled keypoint k displaced by `f(k) · OKS_SCALES[k] · S3` along x.
     fn displaced(f: impl Fn(usize) -> f64) -> Vec<[f64; 3]> {
         (0..K).map(|k| [f(k) * OKS_SCALES[k] * S3, 0.0, 0.0]).collect()
     }
@@ -246,14 +247,14 @@ mod tests {
 
     #[test]
     fn person_oks_averages_visible_keypoints_only() {
-        // visible keypoints at d = 1·s (OKS e^-½) and d = 2·s (OKS e^-2); invisible ones far away
+        // labelled keypoints at d = 1·s (OKS e^-½) and d = 2·s (OKS e^-2); unlabelled ones far away
         let pred = displaced(|k| match k {
             0..=3 => 1.0,
             4..=5 => 2.0,
             _ => 100.0,
         });
-        let visible: Vec<bool> = (0..K).map(|k| k < 6).collect();
-        let e = evaluate_person(&pred, &zeros3(), &visible, S3).unwrap();
+        let labelled: Vec<bool> = (0..K).map(|k| k < 6).collect();
+        let e = evaluate_person(&pred, &zeros3(), &labelled, S3).unwrap();
         let want = (4.0 * (-0.5f64).exp() + 2.0 * (-2.0f64).exp()) / 6.0;
         assert!(close(e.oks.unwrap(), want), "{:?}", e.oks);
         assert!(close(e.per_keypoint_oks[0].unwrap(), (-0.5f64).exp()));
@@ -290,14 +291,14 @@ mod tests {
         let z = zeros3();
         assert_eq!(field(evaluate_person(&z[..12], &z, &[true; K], 1.0)), "pred");
         assert_eq!(field(evaluate_person(&z, &z[..1], &[true; K], 1.0)), "gt");
-        assert_eq!(field(evaluate_person(&z, &z, &[true; 3], 1.0)), "visible");
+        assert_eq!(field(evaluate_person(&z, &z, &[true; 3], 1.0)), "labelled");
         assert_eq!(field(evaluate_person(&z, &z, &[true; K], 0.0)), "box_scale");
         assert_eq!(field(evaluate_person(&z, &z, &[true; K], f64::NAN)), "box_scale");
         let mut bad = zeros3();
         bad[4][2] = f64::NAN;
         assert_eq!(field(evaluate_person(&bad, &z, &[true; K], 1.0)), "pred[4]");
         assert_eq!(field(evaluate_person(&z, &bad, &[true; K], 1.0)), "gt[4]");
-        // an invisible ground-truth keypoint may hold anything
+        // an unlabelled ground-truth keypoint may hold anything
         let mut vis = [true; K];
         vis[4] = false;
         assert!(evaluate_person(&z, &bad, &vis, 1.0).unwrap().oks == Some(1.0));
@@ -319,13 +320,13 @@ mod tests {
 
     #[test]
     fn pooled_mpjpe_pck_and_pem_with_clipping_and_missing_keypoints() {
-        // person a: 2 visible keypoints, errors 0.05 and 0.15 m
+        // person a: 2 labelled keypoints, errors 0.05 and 0.15 m
         let mut pa = zeros3();
         pa[0] = [0.05, 0.0, 0.0];
         pa[1] = [0.0, 0.15, 0.0];
         let va: Vec<bool> = (0..K).map(|k| k < 2).collect();
         let a = evaluate_person(&pa, &zeros3(), &va, S3).unwrap();
-        // person b: 3 visible: errors 0.2 (exactly on the PCK@0.2 boundary), 0.4 (clipped to 0.25 in
+        // person b: 3 labelled: errors 0.2 (exactly on the PCK@0.2 boundary), 0.4 (clipped to 0.25 in
         // PEM) and a missing prediction
         let mut pb: Vec<Option<[f64; 3]>> = vec![Some([0.0; 3]); K];
         pb[0] = Some([0.0, 0.0, 0.2]);
@@ -338,7 +339,7 @@ mod tests {
         let persons = [a, b];
         // MPJPE pools the 4 measured errors (pooled, not per-person: per-person would be 0.2)
         assert!(close(mpjpe(&persons).unwrap(), (0.05 + 0.15 + 0.2 + 0.4) / 4.0));
-        // PCK over 5 visible keypoints; the missing one is incorrect
+        // PCK over 5 labelled keypoints; the missing one is incorrect
         assert!(close(pck(&persons, 0.1).unwrap(), 1.0 / 5.0));
         assert!(close(pck(&persons, 0.2).unwrap(), 3.0 / 5.0));
         // PEM: 0.05 + 0.15 + 0.2 + min(0.4, 0.25) + 0.25 (missing)

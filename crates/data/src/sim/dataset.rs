@@ -200,10 +200,15 @@ pub fn simulate_frame(
                 box_2d: Some(labels.box2d),
                 box_3d: p.box3d,
                 ground_truth: Some(GroundTruth {
-                    keypoints_3d: Some(Keypoints3d { xyz: p.keypoints.to_vec(), visible: labels.visible_3d.to_vec() }),
+                    keypoints_3d: Some(Keypoints3d {
+                        xyz: p.keypoints.to_vec(),
+                        visible: labels.visible_3d.to_vec(),
+                        occluded: labels.occluded_3d.to_vec(),
+                    }),
                     keypoints_2d: Some(Keypoints2d {
                         uv: labels.uv_true.iter().map(|u| if u[0].is_finite() { *u } else { [0.0, 0.0] }).collect(),
                         visible: labels.visible_2d.to_vec(),
+                        occluded: labels.occluded_2d.to_vec(),
                     }),
                 }),
             });
@@ -251,10 +256,12 @@ fn make_sample(
         serve_uv,
         kp2d: labels.uv_label.map(|u| f32x(t.to_model(u))),
         kp2d_visible: labels.visible_2d.map(u8::from),
+        kp2d_occluded: labels.occluded_2d.map(u8::from),
         kp2d_image_true: labels.uv_true.map(f32x),
         kp3d: p.keypoints.map(|k| f32x(to_local(bf, k, cfg))),
         kp3d_vehicle: p.keypoints.map(f32x),
         kp3d_visible: labels.visible_3d.map(u8::from),
+        kp3d_occluded: labels.occluded_3d.map(u8::from),
         box3d: f32x([b.center_x, b.center_y, b.center_z, b.length, b.width, b.height, b.heading]),
         box2d: f32x([labels.box2d.center_x, labels.box2d.center_y, labels.box2d.width, labels.box2d.height]),
         crop: f32x([t.x0, t.y0, t.scale]),

@@ -1,6 +1,10 @@
 //! Labels of a placed person: exact and annotator-noisy 2D keypoints, camera visibility by ray
 //! test, the 2D box, and 3D visibility.
 //!
+//! What is labelled, as Waymo's annotators label (docs/DATA.md): every 3D keypoint of a labelled
+//! person, and every 2D keypoint that projects into the image; a labelled keypoint that is not
+//! visible is marked occluded, and counts in the metrics all the same.
+//!
 //! Occlusion rule: keypoint k is visible in the camera when it projects inside the image and the
 //! first surface hit along the camera ray toward it belongs to the same person, on one of the
 //! body parts that meet at that joint (`body::keypoint_parts`), no farther than the body's
@@ -31,7 +35,11 @@ pub struct PersonLabels {
     /// Annotator-like noisy labels (image pixels).
     pub uv_label: [[f64; 2]; K],
     pub visible_2d: [bool; K],
+    /// Projects into the image but is not seen (labelled, occluded).
+    pub occluded_2d: [bool; K],
     pub visible_3d: [bool; K],
+    /// Neither seen by the camera nor supported by a LiDAR return (labelled, occluded).
+    pub occluded_3d: [bool; K],
     pub box2d: Box2d,
 }
 
@@ -89,11 +97,13 @@ pub fn label_person<R: Rng>(
     let mut uv_label = [[f64::NAN; 2]; K];
     let mut visible_2d = [false; K];
     let mut visible_3d = [false; K];
+    let mut in_image = [false; K];
     for k in 0..K {
         let pr = world.camera.project(p.keypoints[k]);
         if pr.valid {
             uv_true[k] = pr.uv;
         }
+        in_image[k] = pr.in_image;
         let (nx, ny) = match noise {
             Some(n) => (n.sample(rng), n.sample(rng)),
             None => (0.0, 0.0),
@@ -103,5 +113,7 @@ pub fn label_person<R: Rng>(
         let supported = lidar_person_points.iter().any(|q| norm(sub(*q, p.keypoints[k])) <= LIDAR_SUPPORT_M);
         visible_3d[k] = visible_2d[k] || supported;
     }
-    Some(PersonLabels { uv_true, uv_label, visible_2d, visible_3d, box2d })
+    let occluded_2d = std::array::from_fn(|k| in_image[k] && !visible_2d[k]);
+    let occluded_3d = visible_3d.map(|v| !v);
+    Some(PersonLabels { uv_true, uv_label, visible_2d, occluded_2d, visible_3d, occluded_3d, box2d })
 }

@@ -43,43 +43,62 @@ pub struct Kp3dLabel {
     pub occluded: bool,
 }
 
-/// A pedestrian's labels in posefuse's keypoint order.
+/// A labelled keypoint: where it is, and whether Waymo marks it occluded.
+#[derive(Debug, Clone, Copy, PartialEq)]
+pub struct Labelled<const D: usize> {
+    pub at: [f64; D],
+    pub occluded: bool,
+}
+
+impl<const D: usize> Labelled<D> {
+    /// Labelled and not occluded.
+    pub fn visible(&self) -> bool {
+        !self.occluded
+    }
+}
+
+/// A pedestrian's labels in posefuse's keypoint order; `None` where not labelled.
 #[derive(Debug, Clone)]
 pub struct PersonLabelsIn {
     pub box3d: Box3d,
     pub box2d: Box2d,
-    /// Labelled and not occluded (the training target; occluded labels are not trained on,
-    /// as the simulator's `kp2d_visible`).
-    pub kp2d: [Option<[f64; 2]>; K],
+    /// Every labelled 2D keypoint (the visible ones are the training target; occluded labels are
+    /// scored, not trained on, as the simulator's `kp2d_occluded`).
+    pub kp2d: [Option<Labelled<2>>; K],
     /// Every labelled 3D keypoint.
-    pub kp3d: [Option<[f64; 3]>; K],
+    pub kp3d: [Option<Labelled<3>>; K],
 }
 
 /// The 13 keypoints of a label list (other types ignored; the last of a repeated type wins).
-pub fn kp2d_of(kps: &[Kp2dLabel]) -> [Option<[f64; 2]>; K] {
+pub fn kp2d_of(kps: &[Kp2dLabel]) -> [Option<Labelled<2>>; K] {
     let mut out = [None; K];
     for k in kps {
         if let Some(i) = keypoint_index(k.kind) {
-            out[i] = (!k.occluded && k.uv.iter().all(|v| v.is_finite())).then_some(k.uv);
+            out[i] = k.uv.iter().all(|v| v.is_finite()).then_some(Labelled { at: k.uv, occluded: k.occluded });
         }
     }
     out
 }
 
-pub fn kp3d_of(kps: &[Kp3dLabel]) -> [Option<[f64; 3]>; K] {
+pub fn kp3d_of(kps: &[Kp3dLabel]) -> [Option<Labelled<3>>; K] {
     let mut out = [None; K];
     for k in kps {
         if let Some(i) = keypoint_index(k.kind) {
-            out[i] = k.xyz.iter().all(|v| v.is_finite()).then_some(k.xyz);
+            out[i] = k.xyz.iter().all(|v| v.is_finite()).then_some(Labelled { at: k.xyz, occluded: k.occluded });
         }
     }
     out
+}
+
+/// Waymo's flags as the shards' `*_visible` / `*_occluded` arrays.
+fn flags<const D: usize>(kps: &[Option<Labelled<D>>; K]) -> ([u8; K], [u8; K]) {
+    (kps.map(|k| u8::from(k.is_some_and(|k| k.visible()))), kps.map(|k| u8::from(k.is_some_and(|k| k.occluded))))
 }
 
 impl PersonLabelsIn {
-    /// Whether the person has a 2D label to train on.
+    /// Whether the person has a visible 2D label to train on.
     pub fn trainable(&self) -> bool {
-        self.kp2d.iter().any(Option::is_some)
+        self.kp2d.iter().any(|k| k.is_some_and(|k| k.visible()))
     }
 
     pub fn new(box3d: Box3d, box2d: Box2d, kp2d: &[Kp2dLabel], kp3d: &[Kp3dLabel]) -> PersonLabelsIn {
@@ -117,18 +136,21 @@ pub fn person_sample(
     let b = &l.box3d;
     let calib = cam.to_calibration();
     let v = [b.center_x - sensor[0], b.center_y - sensor[1]];
+    let ((kp2d_visible, kp2d_occluded), (kp3d_visible, kp3d_occluded)) = (flags(&l.kp2d), flags(&l.kp3d));
     Ok(Sample {
         image: crop.into_raw(),
         points_xyz,
         points_uv,
         serve_xyz,
         serve_uv,
-        kp2d: l.kp2d.map(|u| u.map_or([0.0; 2], |u| f32x(t.to_model(u)))),
-        kp2d_visible: l.kp2d.map(|u| u8::from(u.is_some())),
-        kp2d_image_true: l.kp2d.map(|u| u.map_or([0.0; 2], f32x)),
-        kp3d: l.kp3d.map(|k| k.map_or([0.0; 3], |k| f32x(to_local(bf, k, cfg)))),
-        kp3d_vehicle: l.kp3d.map(|k| k.map_or([0.0; 3], f32x)),
-        kp3d_visible: l.kp3d.map(|k| u8::from(k.is_some())),
+        kp2d: l.kp2d.map(|u| u.map_or([0.0; 2], |u| f32x(t.to_model(u.at)))),
+        kp2d_visible,
+        kp2d_occluded,
+        kp2d_image_true: l.kp2d.map(|u| u.map_or([0.0; 2], |u| f32x(u.at))),
+        kp3d: l.kp3d.map(|k| k.map_or([0.0; 3], |k| f32x(to_local(bf, k.at, cfg)))),
+        kp3d_vehicle: l.kp3d.map(|k| k.map_or([0.0; 3], |k| f32x(k.at))),
+        kp3d_visible,
+        kp3d_occluded,
         box3d: f32x([b.center_x, b.center_y, b.center_z, b.length, b.width, b.height, b.heading]),
         box2d: f32x([l.box2d.center_x, l.box2d.center_y, l.box2d.width, l.box2d.height]),
         crop: f32x([t.x0, t.y0, t.scale]),
@@ -204,15 +226,17 @@ fn ground_truth(kp3d: Option<&Vec<super::convert::Kp3dLabel>>, kp2d: Option<&Vec
     let k3 = kp3d.map(|k| {
         let a = kp3d_of(k);
         Keypoints3d {
-            xyz: a.iter().map(|x| x.unwrap_or([0.0; 3])).collect(),
-            visible: a.iter().map(Option::is_some).collect(),
+            xyz: a.iter().map(|x| x.map_or([0.0; 3], |x| x.at)).collect(),
+            visible: a.iter().map(|x| x.is_some_and(|x| x.visible())).collect(),
+            occluded: a.iter().map(|x| x.is_some_and(|x| x.occluded)).collect(),
         }
     });
     let k2 = kp2d.map(|k| {
         let a = kp2d_of(k);
         Keypoints2d {
-            uv: a.iter().map(|x| x.unwrap_or([0.0; 2])).collect(),
-            visible: a.iter().map(Option::is_some).collect(),
+            uv: a.iter().map(|x| x.map_or([0.0; 2], |x| x.at)).collect(),
+            visible: a.iter().map(|x| x.is_some_and(|x| x.visible())).collect(),
+            occluded: a.iter().map(|x| x.is_some_and(|x| x.occluded)).collect(),
         }
     });
     (k3.is_some() || k2.is_some()).then_some(GroundTruth { keypoints_3d: k3, keypoints_2d: k2 })

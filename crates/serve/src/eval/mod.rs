@@ -14,7 +14,7 @@ use utoipa::ToSchema;
 use crate::service::api::{BatchItem, Mode, ModelRef, PoseResponse};
 use crate::service::Predictor;
 use posefuse_core::error::{Error, Result};
-use posefuse_core::frame::{Frame, RequestedMode};
+use posefuse_core::frame::{Frame, RequestedMode, Visibility};
 use posefuse_core::geometry::Camera;
 use posefuse_core::json::{from_value, parse_json};
 use posefuse_core::metrics::{MetricsAccumulator, MetricsReport};
@@ -30,8 +30,12 @@ pub use heading_noise::{perturb_headings, HeadingNoise};
 pub struct EvaluateResponse {
     /// Per-frame results, in request order.
     pub predictions: Vec<BatchItem>,
-    /// Metrics over all persons with ground truth (`all`) and per mode that ran.
+    /// Metrics over all persons with ground truth (`all`) and per mode that ran, counting every
+    /// labelled keypoint, occluded or not (Waymo's convention).
     pub metrics: BTreeMap<String, MetricsReport>,
+    /// `all` scored on the `visible` keypoints only and on the `occluded` ones only.
+    #[serde(default)]
+    pub breakdown: BTreeMap<String, MetricsReport>,
     /// Left/right swap rate and facing error (not Waymo metrics), `all` and per mode.
     #[serde(default)]
     pub diagnostics: BTreeMap<String, DiagnosticsReport>,
@@ -48,7 +52,18 @@ pub struct EvalAccumulator {
     by_mode: BTreeMap<Mode, MetricsAccumulator>,
     diagnostics: Diagnostics,
     diagnostics_by_mode: BTreeMap<Mode, Diagnostics>,
+    visible_only: MetricsAccumulator,
+    occluded_only: MetricsAccumulator,
     skipped: usize,
+}
+
+/// The masks of every labelled keypoint (the headline), the visible and the occluded ones.
+fn masks(v: &[Visibility]) -> [Vec<bool>; 3] {
+    [
+        Visibility::labelled_mask(v),
+        Visibility::select(v, Visibility::Visible),
+        Visibility::select(v, Visibility::Occluded),
+    ]
 }
 
 impl EvalAccumulator {
@@ -67,11 +82,16 @@ impl EvalAccumulator {
         for ((_, person), pose) in answered.zip(&resp.persons) {
             let Some(gt) = &person.ground_truth else { continue };
             let pred: Vec<[f64; 3]> = pose.keypoints.iter().map(|k| k.xyz).collect();
-            let mut one = MetricsAccumulator::new();
+            // the headline counts every labelled keypoint (Waymo's mask); the breakdowns score
+            // the visible and the occluded ones apart
+            let mut one = [MetricsAccumulator::new(), MetricsAccumulator::new(), MetricsAccumulator::new()];
             if let Some(k3) = &gt.keypoints_3d {
-                one.add_3d(&pred, &k3.xyz, &k3.visible, &person.box_3d)?;
+                let v = k3.visibility();
+                for (acc, mask) in one.iter_mut().zip(masks(&v)) {
+                    acc.add_3d(&pred, &k3.xyz, &mask, &person.box_3d)?;
+                }
                 let mut d = Diagnostics::default();
-                d.add(&pred, &k3.xyz, &k3.visible);
+                d.add(&pred, &k3.xyz, &Visibility::labelled_mask(&v));
                 self.diagnostics.merge(&d);
                 self.diagnostics_by_mode.entry(pose.mode).or_default().merge(&d);
             }
@@ -79,12 +99,26 @@ impl EvalAccumulator {
             // `cameras` it names (without a name they belong to no camera in particular)
             let calibration = frame.calibration_of(person.camera.as_deref());
             if let (Some(k2), Some(b2), Some(c)) = (&gt.keypoints_2d, person.box_2d.or(pose.box_2d), calibration) {
-                one.add_projected(&Camera::from_calibration(c)?, &pred, &k2.uv, &k2.visible, &b2)?;
+                let camera = Camera::from_calibration(c)?;
+                for (acc, mask) in one.iter_mut().zip(masks(&k2.visibility())) {
+                    acc.add_projected(&camera, &pred, &k2.uv, &mask, &b2)?;
+                }
             }
-            self.all.merge(&one);
-            self.by_mode.entry(pose.mode).or_default().merge(&one);
+            let [labelled, visible, occluded] = one;
+            self.all.merge(&labelled);
+            self.by_mode.entry(pose.mode).or_default().merge(&labelled);
+            self.visible_only.merge(&visible);
+            self.occluded_only.merge(&occluded);
         }
         Ok(())
+    }
+
+    /// The visible-only and occluded-only breakdowns of `all` (never the headline).
+    pub fn breakdown(&self) -> BTreeMap<String, MetricsReport> {
+        BTreeMap::from([
+            ("visible".to_string(), self.visible_only.report()),
+            ("occluded".to_string(), self.occluded_only.report()),
+        ])
     }
 
     /// Persons with ground truth that the server skipped (not scored).
@@ -131,8 +165,11 @@ pub struct EvalReport {
     pub skipped_persons: usize,
     /// The first few failures (`file: message`).
     pub failures: Vec<String>,
-    /// `all` and per mode.
+    /// `all` and per mode, every labelled keypoint counted.
     pub metrics: BTreeMap<String, MetricsReport>,
+    /// `all` on the `visible` keypoints only and on the `occluded` ones only.
+    #[serde(default)]
+    pub breakdown: BTreeMap<String, MetricsReport>,
     /// Left/right swaps and facing error, `all` and per mode.
     pub diagnostics: BTreeMap<String, DiagnosticsReport>,
 }
@@ -174,6 +211,14 @@ impl EvalReport {
                     d.facing_judged
                 ));
             }
+        }
+        let line = |r: &MetricsReport| {
+            let pct = r.oks_acc_3d.map_or_else(|| "-".to_string(), |v| format!("{:.2} %", 100.0 * v));
+            let cm = r.mpjpe_3d_m.map_or_else(|| "-".to_string(), |v| format!("{:.2} cm", 100.0 * v));
+            format!("OKS/ACC {pct}, MPJPE {cm} ({} persons)", r.count_3d)
+        };
+        for (name, r) in &self.breakdown {
+            out.push_str(&format!("breakdown, {name} keypoints only (3D): {}\n", line(r)));
         }
         out
     }
@@ -242,6 +287,7 @@ pub async fn evaluate_frames(
     Ok(EvaluateResponse {
         predictions: results.into_iter().map(|(_, it)| it).collect(),
         metrics: acc.reports(),
+        breakdown: acc.breakdown(),
         diagnostics: acc.diagnostics(),
         failed_frames: failed,
         skipped_persons: acc.skipped(),
@@ -291,7 +337,88 @@ pub async fn evaluate_fixtures(predictor: &Predictor, data: &Path, run: &Fixture
         skipped_persons: ev.skipped_persons,
         failures,
         metrics: ev.metrics,
+        breakdown: ev.breakdown,
         diagnostics: ev.diagnostics,
         heading_noise: run.heading_noise,
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use posefuse_core::frame::{Box3d, GroundTruth, Keypoints3d, Person, Points};
+    use posefuse_core::keypoints::{K, NAMES};
+
+    /// One person whose keypoints are all predicted 10 cm off, except keypoint 3 (occluded, 40 cm
+    /// off) and keypoint 4 (missing from the labels, 2 m off).
+    fn frame_and_answer() -> (Frame, PoseResponse) {
+        let gt: Vec<[f64; 3]> = (0..K).map(|k| [10.0, 0.0, 0.1 * k as f64]).collect();
+        let off = |k: usize| match k {
+            3 => 0.4,
+            4 => 2.0,
+            _ => 0.1,
+        };
+        let person = Person {
+            id: "p".into(),
+            camera: None,
+            box_2d: None,
+            box_3d: Box3d {
+                center_x: 10.0,
+                center_y: 0.0,
+                center_z: 0.9,
+                length: 0.6,
+                width: 0.6,
+                height: 1.8,
+                heading: 0.0,
+            },
+            ground_truth: Some(GroundTruth {
+                keypoints_3d: Some(Keypoints3d {
+                    xyz: gt.clone(),
+                    visible: (0..K).map(|k| k != 3 && k != 4).collect(),
+                    occluded: (0..K).map(|k| k == 3).collect(),
+                }),
+                keypoints_2d: None,
+            }),
+        };
+        let frame = Frame {
+            frame_id: None,
+            image: None,
+            image_rgb: None,
+            calibration: None,
+            cameras: Vec::new(),
+            points: Points::Flat(vec![10.0, 0.0, 1.0]),
+            persons: vec![person],
+            mode: RequestedMode::Auto,
+        };
+        let keypoints: Vec<serde_json::Value> = (0..K)
+            .map(|k| {
+                let p = gt[k];
+                serde_json::json!({"name": NAMES[k], "waymo_type": 1, "xyz": [p[0] + off(k), p[1], p[2]]})
+            })
+            .collect();
+        let answer = serde_json::json!({
+            "model": {"name": "m", "version": "1"},
+            "persons": [{"id": "p", "mode": "lidar", "mode_reason": "test", "num_points": 1, "keypoints": keypoints}],
+            "timings": {"decode_ms": 0.0, "preprocess_ms": 0.0, "queue_ms": 0.0, "inference_ms": 0.0, "total_ms": 0.0},
+        });
+        (frame, serde_json::from_value(answer).unwrap())
+    }
+
+    #[test]
+    fn occluded_keypoints_count_in_the_headline_and_missing_ones_do_not() {
+        let (frame, answer) = frame_and_answer();
+        let mut acc = EvalAccumulator::default();
+        acc.add(&frame, &answer).unwrap();
+        let all = &acc.reports()["all"];
+        // 11 visible keypoints at 0.1 m and one occluded at 0.4 m: (11·0.1 + 0.4) / 12 = 0.125
+        assert!((all.mpjpe_3d_m.unwrap() - 0.125).abs() < 1e-12, "{all:?}");
+        // PCK@0.2 m: 11 of 12
+        assert!((all.pck_3d_20cm.unwrap() - 11.0 / 12.0).abs() < 1e-12);
+        assert!(all.per_keypoint_oks_3d[3].oks.is_some() && all.per_keypoint_oks_3d[4].oks.is_none());
+        let b = acc.breakdown();
+        assert!((b["visible"].mpjpe_3d_m.unwrap() - 0.1).abs() < 1e-12);
+        assert!((b["occluded"].mpjpe_3d_m.unwrap() - 0.4).abs() < 1e-12);
+        assert_eq!((b["visible"].count_3d, b["occluded"].count_3d), (1, 1));
+        assert_eq!(acc.reports()["lidar"], *all);
+    }
 }
