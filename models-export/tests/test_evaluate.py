@@ -1,4 +1,5 @@
 import numpy as np
+import pytest
 
 from posefuse_train.data import load
 from posefuse_train.evaluate import camera_only, left_right_swap_rate, with_fallback
@@ -46,3 +47,21 @@ def test_left_right_swap_rate_counts_persons_read_the_wrong_way_round():
     assert left_right_swap_rate(pred, gt, vis) == 2 / 3
     assert left_right_swap_rate(gt, gt, vis) == 0.0
     assert left_right_swap_rate(pred, gt, np.zeros((4, K), bool)) is None
+
+
+def test_occluded_keypoints_count_in_the_headline_and_apart_in_the_breakdown(synthetic_sets):
+    from posefuse_train.evaluate import evaluate
+
+    d, cfg, _ = load(synthetic_sets[1])
+    vis3, occ3 = d["kp3d_visible"] > 0, d["kp3d_occluded"] > 0
+    assert occ3.any() and not (vis3 & occ3).any()
+    # visible keypoints 5 cm off along x, occluded ones 30 cm off
+    off = np.where(occ3, 0.3, 0.05)
+    pred = d["kp3d"].copy()
+    pred[..., 0] += off
+    r = evaluate(pred, d, cfg)
+    labelled = vis3 | occ3
+    assert r["mpjpe_3d_m"] == pytest.approx(off[labelled].mean(), rel=1e-5)
+    assert r["breakdown"]["visible"]["mpjpe_3d_m"] == pytest.approx(0.05, rel=1e-5)
+    assert r["breakdown"]["occluded"]["mpjpe_3d_m"] == pytest.approx(0.3, rel=1e-5)
+    assert r["pck_3d_20cm"] == pytest.approx(vis3.sum() / labelled.sum(), rel=1e-9)

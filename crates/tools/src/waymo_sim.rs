@@ -393,9 +393,10 @@ pub fn simulate_frame(
             continue;
         };
         let id = format!("ped{index:04}{li}");
-        // every 3D keypoint is labelled, those neither seen nor hit marked occluded (as the
-        // simulator's own labels)
+        // the simulator's own 3D labels: every keypoint of a person with one seen, those neither
+        // seen nor hit marked occluded
         let mut kps: Vec<Kp3dLabel> = (0..K)
+            .filter(|&k| front.visible_3d[k] || front.occluded_3d[k])
             .map(|k| Kp3dLabel { kind: KEYPOINT_TYPES[k], xyz: p.keypoints[k], occluded: front.occluded_3d[k] })
             .collect();
         let head = head_center(p.keypoints[0], p.heading);

@@ -1,9 +1,11 @@
 //! Labels of a placed person: exact and annotator-noisy 2D keypoints, camera visibility by ray
 //! test, the 2D box, and 3D visibility.
 //!
-//! What is labelled, as Waymo's annotators label (docs/DATA.md): every 3D keypoint of a labelled
-//! person, and every 2D keypoint that projects into the image; a labelled keypoint that is not
-//! visible is marked occluded, and counts in the metrics all the same.
+//! What is labelled, as Waymo's annotators label (docs/DATA.md): a person with at least one visible
+//! keypoint gets every 3D keypoint labelled, and every 2D keypoint that projects into the image
+//! (2D only when the camera sees one of them); a labelled keypoint that is not visible is marked
+//! occluded, and counts in the metrics all the same. A person nothing of whose joints is seen gets
+//! no keypoint labels, as annotators leave them.
 //!
 //! Occlusion rule: keypoint k is visible in the camera when it projects inside the image and the
 //! first surface hit along the camera ray toward it belongs to the same person, on one of the
@@ -113,7 +115,9 @@ pub fn label_person<R: Rng>(
         let supported = lidar_person_points.iter().any(|q| norm(sub(*q, p.keypoints[k])) <= LIDAR_SUPPORT_M);
         visible_3d[k] = visible_2d[k] || supported;
     }
-    let occluded_2d = std::array::from_fn(|k| in_image[k] && !visible_2d[k]);
-    let occluded_3d = visible_3d.map(|v| !v);
+    let seen_2d = visible_2d.iter().any(|&v| v);
+    let seen_3d = visible_3d.iter().any(|&v| v);
+    let occluded_2d = std::array::from_fn(|k| seen_2d && in_image[k] && !visible_2d[k]);
+    let occluded_3d = visible_3d.map(|v| seen_3d && !v);
     Some(PersonLabels { uv_true, uv_label, visible_2d, occluded_2d, visible_3d, occluded_3d, box2d })
 }
