@@ -1,6 +1,7 @@
 """Markdown for docs/RESULTS.md: our ablation beside the paper's Tables 1-3.
 
-    python -m experiments.report runs/ablation/results.json --notes docs/results-analysis.md \\
+    python -m experiments.report runs/ablation/results.json --preface docs/results-convention.md \\
+        --notes docs/results-analysis.md \\
         --choices docs/results-choices.md --out docs/RESULTS.md
 
 Without --out the markdown goes to standard output."""
@@ -305,6 +306,7 @@ def results_markdown(
     heading_error: list[dict] | None = None,
     street: list[dict] | None = None,
     choices: str | None = None,
+    preface: str | None = None,
 ) -> str:
     rows, pre, lq = s["rows"], s["preprocessing"], s["label_quality"]
     cam = rows["camera"]
@@ -339,6 +341,7 @@ def results_markdown(
     lines = [
         "# Results: the paper's ablation on simulated pedestrians",
         "",
+        *([preface.strip(), ""] if preface else []),
         f"One command, {s['wall_s'] / 60:.1f} min wall time on {s['machine']}:",
         "",
         "```",
@@ -438,6 +441,7 @@ def main(argv=None):
     p.add_argument("--heading-error", help="JSON written by experiments.heading_error --json")
     p.add_argument("--street", nargs="*", default=[], help="results.json of runs on --profile street data")
     p.add_argument("--choices", help="markdown placed last (docs/results-choices.md: choices and deviations)")
+    p.add_argument("--preface", help="markdown placed first (docs/results-convention.md: what counts)")
     p.add_argument(
         "--out", help="write the markdown to this file (e.g. docs/RESULTS.md) instead of printing it"
     )
@@ -454,6 +458,7 @@ def main(argv=None):
         load(a.heading_error),
         [load(r) for r in a.street],
         text(a.choices),
+        text(a.preface),
     )
     if a.out:
         Path(a.out).write_text(md)

@@ -88,12 +88,17 @@ def test_ablation_runs_end_to_end_and_writes_report_and_bundle(synthetic_sets, t
         assert {"camera", "lidar_reg_seg", "fusion_reg_seg"} <= set(c)
     assert sum(c["persons"] for c in table) == int(((range_m >= 3) & (range_m < 60)).sum())
     (tmp_path / "notes.md").write_text("## Our analysis\n\nhand-written")
+    (tmp_path / "preface.md").write_text("## Metric convention\n\nwhat counts")
     report_main(
         [str(out / "results.json"), "--by-range", str(tmp_path / "by_range.json")]
-        + ["--notes", str(tmp_path / "notes.md"), "--out", str(tmp_path / "R.md")]
+        + ["--notes", str(tmp_path / "notes.md"), "--preface", str(tmp_path / "preface.md")]
+        + ["--out", str(tmp_path / "R.md")]
     )
     md = (tmp_path / "R.md").read_text()
     assert "## Our analysis\n\nhand-written" in md
+    # the preface comes first, right after the title
+    at = md.index
+    assert at("## Metric convention\n\nwhat counts") < at("One command,") < at("## Our analysis")
     # the by-range table: one line per band, with its persons and the rows' measured numbers
     c = table[0]
     cell = f"{pct(c['camera']['oks_acc_3d'])} / {cm(c['camera']['mpjpe_3d_m'])}"
