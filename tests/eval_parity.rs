@@ -45,8 +45,11 @@ fn bundle_copy(src: &Path, dst: &Path, edit: impl Fn(&mut Value)) -> PathBuf {
     std::fs::create_dir_all(dst).expect("bundle dir");
     let mut manifest = read_json(&src.join("manifest.json"));
     for m in manifest["models"].as_object().expect("models").values() {
-        let file = m["file"].as_str().expect("file");
-        std::fs::copy(src.join(file), dst.join(file)).expect("copy model");
+        let variants = m["variants"].as_object().into_iter().flat_map(|v| v.values());
+        for file in std::iter::once(&m["file"]).chain(variants.map(|v| &v["file"])) {
+            let file = file.as_str().expect("file");
+            std::fs::copy(src.join(file), dst.join(file)).expect("copy model");
+        }
     }
     edit(&mut manifest);
     std::fs::write(dst.join("manifest.json"), serde_json::to_vec_pretty(&manifest).expect("JSON")).expect("write");
@@ -73,6 +76,10 @@ struct Setup {
 }
 
 fn python(bundle: &Path, data: &Path, modes: &str, out: &Path) -> (Value, Value) {
+    python_at(bundle, data, modes, out, None)
+}
+
+fn python_at(bundle: &Path, data: &Path, modes: &str, out: &Path, precision: Option<&str>) -> (Value, Value) {
     let python = root().join(".venv/bin/python");
     assert!(python.exists(), "{} missing: run `bash scripts/setup.sh`", python.display());
     let stdout = run(Command::new(&python)
@@ -82,6 +89,7 @@ fn python(bundle: &Path, data: &Path, modes: &str, out: &Path) -> (Value, Value)
         .arg(data)
         .arg("--predictions-out")
         .arg(out)
+        .args(precision.iter().flat_map(|p| ["--precision", p]))
         .env("PYTHONPATH", root().join("models-export"))
         .current_dir(root().join("models-export")));
     (serde_json::from_slice(&stdout).expect("tool JSON"), read_json(out))
@@ -167,6 +175,14 @@ fn setup() -> Setup {
         let (reports, preds) = python(&copy, &data, "auto", &dir.join(format!("{name}.json")));
         runs.insert(name, Run { serve, trainer: reports["auto"].clone(), trainer_predictions: preds["auto"].clone() });
     }
+    // the INT8 camera network: a copy whose manifest makes it the bundle's own precision
+    let int8 = bundle_copy(&bundle, &dir.join("int8"), |m| m["precision"] = json!("int8"));
+    let serve = serve(&rt, &int8, &frames, &["fusion"]).remove(0);
+    let (reports, preds) = python_at(&int8, &data, "fusion", &dir.join("int8.json"), Some("int8"));
+    runs.insert(
+        "fusion_int8",
+        Run { serve, trainer: reports["fusion"].clone(), trainer_predictions: preds["fusion"].clone() },
+    );
     let t1 = bundle_copy(&bundle, &dir.join("t1"), |m| m["preprocessing"]["lift_temperature"] = json!(1.0));
     let (_, camera_t1) = python(&t1, &data, "camera", &dir.join("t1.json"));
     drop(tmp);
@@ -283,6 +299,28 @@ fn lidar_mode_serves_what_the_trainer_evaluates() {
 #[test]
 fn camera_mode_serves_what_the_trainer_evaluates() {
     forced("camera");
+}
+
+/// The INT8 camera network serves what the trainer evaluates with it, and it is not the float32
+/// one: some fused keypoint moves.
+#[test]
+fn fusion_mode_with_the_int8_camera_serves_what_the_trainer_evaluates() {
+    let setup = setup_once();
+    let c = compare(setup, "fusion_int8");
+    assert!(c.persons >= MIN_PERSONS && c.by_mode.keys().collect::<Vec<_>>() == ["fusion"], "{c:?}");
+    let answers = |name: &str| -> Vec<Vec<[f64; 3]>> {
+        let items = setup.runs[name].serve["predictions"].as_array().expect("predictions").clone();
+        items
+            .iter()
+            .flat_map(|it| it["response"]["persons"].as_array().cloned().unwrap_or_default())
+            .map(|p| xyz(&p))
+            .collect()
+    };
+    let (int8, fp32) = (answers("fusion_int8"), answers("fusion"));
+    assert_eq!(int8.len(), fp32.len());
+    let moved =
+        int8.iter().zip(&fp32).flat_map(|(a, b)| a.iter().zip(b)).map(|(a, b)| distance(a, b)).fold(0.0, f64::max);
+    assert!(moved > 1e-6, "the INT8 camera changed nothing: was it loaded?");
 }
 
 fn auto(name: &str, boundary_mode: &str) {

@@ -51,12 +51,30 @@ def run(session: ort.InferenceSession, name: str, x: np.ndarray, batch: int = 25
     return [np.concatenate([o[i] for o in outs], axis=0) for i in range(len(outs[0]))]
 
 
-def sessions(bundle: Path, threads: int = 1) -> dict:
+def model_file(spec: dict, precision: str | None) -> str:
+    """The file a model runs from at `precision` (None or fp32: its own; else its variant)."""
+    if precision in (None, "fp32"):
+        return spec["file"]
+    variants = spec.get("variants", {})
+    if precision not in variants:
+        raise SystemExit(
+            f"no {precision} variant of this network in the bundle (python -m posefuse_train.quantize)"
+        )
+    return variants[precision]["file"]
+
+
+def sessions(bundle: Path, threads: int = 1, precision: str | None = None) -> dict:
+    """One session per network; `precision` picks the camera's variant (as `posefuse serve
+    --precision`), the point networks have none."""
     manifest = json.loads((Path(bundle) / "manifest.json").read_text())
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     return {
-        k: ort.InferenceSession(str(Path(bundle) / v["file"]), opts, providers=["CPUExecutionProvider"])
+        k: ort.InferenceSession(
+            str(Path(bundle) / model_file(v, precision if k == "camera" else None)),
+            opts,
+            providers=["CPUExecutionProvider"],
+        )
         for k, v in manifest["models"].items()
     }
 
@@ -75,12 +93,14 @@ def predictions(sess: dict, d: dict, cfg: PipelineConfig, batch: int = 256) -> d
     }
 
 
-def held_out(bundle: Path, test: ShardSet, threads: int = 1, progress=None) -> dict:
+def held_out(
+    bundle: Path, test: ShardSet, threads: int = 1, progress=None, precision: str | None = None
+) -> dict:
     """{fusion, lidar, camera}: metrics of every test person in each forced mode, persons with
     fewer than min_points in-box points answered by camera lifting (as the server does), read one
     shard at a time so the test set need not fit in memory."""
     cfg = PipelineConfig.from_dict(json.loads((Path(bundle) / "manifest.json").read_text())["preprocessing"])
-    sess = sessions(bundle, threads)
+    sess = sessions(bundle, threads, precision)
     preds: dict[str, list] = {"fusion": [], "lidar": [], "camera": []}
     kept: list[dict] = []
     for i in range(test.num_shards):

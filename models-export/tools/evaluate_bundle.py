@@ -94,7 +94,14 @@ def read_fixtures(root: Path, d: dict) -> dict:
     return out
 
 
-def evaluate_bundle(bundle: Path, root: Path, fixtures_only: bool, modes=("auto",), threads: int = 1):
+def evaluate_bundle(
+    bundle: Path,
+    root: Path,
+    fixtures_only: bool,
+    modes=("auto",),
+    threads: int = 1,
+    precision: str | None = None,
+):
     """(report per mode, per-person predictions per mode). A report holds the persons scored,
     those skipped, the frames the server refuses and the metrics over all persons and per mode
     that ran; predictions map fixture file -> person id -> {mode, num_points, xyz (vehicle)}."""
@@ -110,7 +117,7 @@ def evaluate_bundle(bundle: Path, root: Path, fixtures_only: bool, modes=("auto"
         m = len(d["points_count"])
         d["box3d"] = np.asarray(fx["box3d"], np.float64)
     has_image = np.ones(m, bool) if fx is None else np.asarray(fx["image"], bool)
-    pred = predictions(sessions(bundle, threads), d, cfg)
+    pred = predictions(sessions(bundle, threads, precision), d, cfg)
     reports, per_person = {}, {}
     for requested in modes:
         mode = person_modes(requested, d, has_image, cfg)
@@ -171,13 +178,16 @@ def main(argv=None):
     p.add_argument("--mode", default="auto", help="comma-separated modes among " + ", ".join(MODES))
     p.add_argument("--predictions-out", help="write per-person predictions here (needs --fixtures-only)")
     p.add_argument("--json", action="store_true", help="print {mode: report} as JSON")
+    p.add_argument("--precision", help="the camera network's precision, as `posefuse serve --precision`")
     a = p.parse_args(argv)
     modes = [x for x in a.mode.split(",") if x]
     if not modes or any(x not in MODES for x in modes):
         p.error(f"--mode: one or more of {', '.join(MODES)}")
     if a.predictions_out and not a.fixtures_only:
         p.error("--predictions-out needs --fixtures-only (predictions are keyed by fixture)")
-    reports, per_person = evaluate_bundle(Path(a.bundle), Path(a.data), a.fixtures_only, modes)
+    reports, per_person = evaluate_bundle(
+        Path(a.bundle), Path(a.data), a.fixtures_only, modes, precision=a.precision
+    )
     if a.predictions_out:
         Path(a.predictions_out).write_text(json.dumps(per_person))
     if a.json:

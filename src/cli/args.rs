@@ -9,7 +9,7 @@ use posefuse::eval::HeadingNoise;
 use posefuse::frame::RequestedMode;
 use posefuse::loadbench::{BenchOptions, LoadOptions};
 use posefuse::pipeline::PointFrame;
-use posefuse::runtime::{Device, RuntimeConfig};
+use posefuse::runtime::{Device, Precision, RuntimeConfig};
 use posefuse::server::conn::ConnLimits;
 use posefuse::server::ServerConfig;
 use posefuse::service::admission::Sizing;
@@ -35,6 +35,10 @@ pub struct RuntimeArgs {
     /// (`bash scripts/setup.sh --gpu`); without it the server refuses to start.
     #[arg(long, env = "POSEFUSE_DEVICE", default_value = "cpu")]
     pub device: Device,
+    /// The camera network's precision: fp32, or int8 where the bundle has an INT8 variant
+    /// (docs/BUNDLE.md, "Precision"; default: the bundle manifest's `precision`, else fp32).
+    #[arg(long, env = "POSEFUSE_PRECISION")]
+    pub precision: Option<Precision>,
     /// Inference worker threads; each owns its own ONNX Runtime sessions (0: one per 4 cores).
     #[arg(long, env = "POSEFUSE_WORKERS", default_value_t = 0)]
     pub workers: usize,
@@ -104,6 +108,7 @@ impl RuntimeArgs {
             batch_wait: Duration::from_micros(batch_wait_us),
             queue_size: self.queue_size,
             device: self.device,
+            precision: self.precision,
         }
     }
 }
@@ -369,6 +374,15 @@ mod tests {
         assert_eq!(cfg(&["x"]).unwrap(), Device::Cpu);
         assert_eq!(cfg(&["x", "--device", "cuda:1"]).unwrap(), Device::Cuda(1));
         assert!(cfg(&["x", "--device", "gpu"]).is_err());
+    }
+
+    #[test]
+    fn the_precision_flag_reaches_the_runtime() {
+        let cfg = |args: &[&str]| Runtime::try_parse_from(args).map(|a| a.runtime.runtime_config().precision);
+        assert_eq!(cfg(&["x"]).unwrap(), None, "unset: the bundle's own");
+        assert_eq!(cfg(&["x", "--precision", "int8"]).unwrap(), Some(Precision::Int8));
+        assert_eq!(cfg(&["x", "--precision", "fp32"]).unwrap(), Some(Precision::Fp32));
+        assert!(cfg(&["x", "--precision", "fp16"]).is_err());
     }
 
     #[derive(Parser)]

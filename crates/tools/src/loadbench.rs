@@ -483,6 +483,7 @@ fn spawn_server(args: &BenchOptions) -> posefuse_data::error::Result<Spawned> {
         .args(["--batch-wait-us", &r.batch_wait.as_micros().to_string()])
         .args(["--queue-size", &r.queue_size.to_string()])
         .args(["--device", &r.device.to_string()])
+        .args(r.precision.iter().flat_map(|p| ["--precision".to_string(), p.to_string()]))
         .args(&args.serve_args)
         .stdout(Stdio::null())
         .stderr(Stdio::null());

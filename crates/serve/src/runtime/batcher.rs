@@ -36,6 +36,8 @@ pub struct RuntimeConfig {
     pub queue_size: usize,
     /// Where the sessions run.
     pub device: super::Device,
+    /// The camera network's precision (None: the bundle manifest's).
+    pub precision: Option<super::Precision>,
 }
 
 impl RuntimeConfig {
@@ -48,6 +50,7 @@ impl RuntimeConfig {
         batch_wait: Duration::ZERO,
         queue_size: 256,
         device: super::Device::Cpu,
+        precision: None,
     };
 }
 
@@ -114,12 +117,18 @@ impl Runtime {
     /// Loads and validates the bundle in `model_dir` and starts a runtime on it (blocking:
     /// builds the sessions).
     pub fn load(model_dir: &std::path::Path, cfg: &RuntimeConfig) -> Result<Arc<Runtime>> {
-        let bundle = Arc::new(Bundle::load(model_dir)?);
+        let bundle = Arc::new(Bundle::load_at(model_dir, cfg.precision)?);
         if bundle.trained() == Some(false) {
             tracing::warn!(bundle = %model_dir.display(), "serving an UNTRAINED bundle (tests only)");
         }
         let m = &bundle.manifest;
-        tracing::info!(bundle = %model_dir.display(), name = %m.name, version = %m.version, "bundle loaded");
+        tracing::info!(
+            bundle = %model_dir.display(),
+            name = %m.name,
+            version = %m.version,
+            precision = %bundle.precision,
+            "bundle loaded"
+        );
         Ok(Arc::new(Runtime::start(bundle, cfg)?))
     }
 

@@ -1,6 +1,7 @@
-//! The model bundle: `manifest.json` plus three ONNX files. Loading checks everything that can be
-//! checked without ONNX Runtime (files, hashes, declared shapes against the pre-processing
-//! config); `models` checks the sessions against the same declarations.
+//! The model bundle: `manifest.json` plus three ONNX files (and optional variants of them in
+//! another precision). Loading checks everything that can be checked without ONNX Runtime (files,
+//! hashes, declared shapes against the pre-processing config); `models` checks the sessions
+//! against the same declarations.
 
 use std::collections::BTreeMap;
 use std::path::{Path, PathBuf};
@@ -11,6 +12,8 @@ use sha2::{Digest, Sha256};
 use posefuse_core::error::{Error, Result};
 use posefuse_core::keypoints::{K, NAMES, WAYMO_TYPES};
 use posefuse_core::pipeline::PipelineConfig;
+
+use super::precision::Precision;
 
 /// The manifest format this server reads.
 pub const FORMAT_VERSION: u32 = 1;
@@ -24,6 +27,9 @@ pub struct Manifest {
     pub keypoints: ManifestKeypoints,
     pub preprocessing: PipelineConfig,
     pub models: ManifestModels,
+    /// The precision served when none is asked for (absent: float32).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub precision: Option<Precision>,
 }
 
 /// Keypoint order the networks were trained with.
@@ -48,6 +54,16 @@ pub struct ModelSpec {
     pub sha256: String,
     pub inputs: BTreeMap<String, Vec<i64>>,
     pub outputs: BTreeMap<String, Vec<i64>>,
+    /// The same network in another precision (key: `int8`), with the same tensors.
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    pub variants: BTreeMap<String, VariantSpec>,
+}
+
+/// Another file of a network (e.g. its INT8 quantization), declaring the same tensors.
+#[derive(Debug, Clone, Serialize, Deserialize)]
+pub struct VariantSpec {
+    pub file: String,
+    pub sha256: String,
 }
 
 /// Which network.
@@ -109,11 +125,21 @@ pub struct Bundle {
     pub camera: ModelIo,
     pub point_fusion: ModelIo,
     pub point_lidar: ModelIo,
+    /// The camera network's precision (its file is `camera.path`).
+    pub precision: Precision,
+    /// The camera file's expected hash at that precision.
+    camera_sha256: String,
 }
 
 impl Bundle {
-    /// Reads and validates `dir/manifest.json` and the files it names.
+    /// Reads and validates `dir/manifest.json` and the files it names, the camera network at the
+    /// manifest's precision.
     pub fn load(dir: &Path) -> Result<Bundle> {
+        Bundle::load_at(dir, None)
+    }
+
+    /// As [`Bundle::load`], the camera network at `precision` (None: the manifest's, else fp32).
+    pub fn load_at(dir: &Path, precision: Option<Precision>) -> Result<Bundle> {
         let manifest_path = dir.join("manifest.json");
         let text = std::fs::read_to_string(&manifest_path).map_err(|e| {
             Error::Bundle(format!(
@@ -125,12 +151,54 @@ impl Bundle {
             .map_err(|e| Error::Bundle(format!("{}: not valid JSON: {e}", manifest_path.display())))?;
         let manifest: Manifest = serde_path_to_error::deserialize(&raw)
             .map_err(|e| Error::Bundle(format!("{}: field `{}`: {}", manifest_path.display(), e.path(), e.inner())))?;
-        let bundle = Bundle::from_manifest(dir, manifest, raw)?;
+        let bundle = Bundle::from_manifest(dir, manifest, raw)?.at_precision(precision)?;
         for kind in ModelKind::ALL {
-            let spec = bundle.spec(kind);
-            check_sha256(&bundle.io(kind).path, &spec.sha256, kind)?;
+            check_sha256(&bundle.io(kind).path, bundle.sha256(kind), &bundle.sha256_field(kind))?;
         }
         Ok(bundle)
+    }
+
+    /// The camera network switched to `precision` (None: the manifest's): its variant's file, with
+    /// the same tensors. A precision the bundle has no file for is refused, naming the way to make one.
+    pub fn at_precision(mut self, precision: Option<Precision>) -> Result<Bundle> {
+        let p = precision.or(self.manifest.precision).unwrap_or_default();
+        if p != Precision::Fp32 {
+            let v = self.manifest.models.camera.variants.get(p.key()).ok_or_else(|| {
+                Error::Bundle(format!(
+                    "models.camera.variants.{p}: the bundle in {} has no {p} camera network (make one with \
+                     `python -m posefuse_train.quantize --bundle DIR --calibration DATA`, or serve with \
+                     --precision fp32)",
+                    self.dir.display()
+                ))
+            })?;
+            let path = self.dir.join(&v.file);
+            if !path.is_file() {
+                return Err(Error::Bundle(format!(
+                    "models.camera.variants.{p}.file: {} does not exist",
+                    path.display()
+                )));
+            }
+            self.camera.path = path;
+            self.camera_sha256 = v.sha256.clone();
+        }
+        self.precision = p;
+        Ok(self)
+    }
+
+    /// Where that hash is declared in the manifest.
+    fn sha256_field(&self, kind: ModelKind) -> String {
+        match (kind, self.precision) {
+            (ModelKind::Camera, p) if p != Precision::Fp32 => format!("models.camera.variants.{p}.sha256"),
+            (k, _) => format!("models.{}.sha256", k.key()),
+        }
+    }
+
+    /// The hash a model's file must have at the bundle's precision.
+    fn sha256(&self, kind: ModelKind) -> &str {
+        match kind {
+            ModelKind::Camera => &self.camera_sha256,
+            other => &self.spec(other).sha256,
+        }
     }
 
     /// Validates a parsed manifest (no file access except existence checks).
@@ -154,7 +222,17 @@ impl Bundle {
         let camera = resolve(dir, ModelKind::Camera, &manifest.models.camera, &[3, s, s], &[K, h, h])?;
         let point_fusion = resolve(dir, ModelKind::PointFusion, &manifest.models.point_fusion, &[n, 3 + K], &[K, 3])?;
         let point_lidar = resolve(dir, ModelKind::PointLidar, &manifest.models.point_lidar, &[n, 3], &[K, 3])?;
-        Ok(Bundle { dir: dir.to_path_buf(), manifest, raw, camera, point_fusion, point_lidar })
+        let camera_sha256 = manifest.models.camera.sha256.clone();
+        Ok(Bundle {
+            dir: dir.to_path_buf(),
+            manifest,
+            raw,
+            camera,
+            point_fusion,
+            point_lidar,
+            precision: Precision::Fp32,
+            camera_sha256,
+        })
     }
 
     /// The pre-processing configuration every request is prepared with.
@@ -242,15 +320,11 @@ fn resolve(dir: &Path, kind: ModelKind, spec: &ModelSpec, input: &[usize], outpu
     })
 }
 
-fn check_sha256(path: &Path, want: &str, kind: ModelKind) -> Result<()> {
+fn check_sha256(path: &Path, want: &str, field: &str) -> Result<()> {
     let bytes = std::fs::read(path).map_err(|e| Error::Bundle(format!("cannot read {}: {e}", path.display())))?;
     let got = hex::encode(Sha256::digest(&bytes));
     if !got.eq_ignore_ascii_case(want) {
-        return Err(Error::Bundle(format!(
-            "models.{}.sha256: {} hashes to {got}, the manifest says {want}",
-            kind.key(),
-            path.display()
-        )));
+        return Err(Error::Bundle(format!("{field}: {} hashes to {got}, the manifest says {want}", path.display())));
     }
     Ok(())
 }
@@ -265,6 +339,7 @@ mod tests {
             sha256: String::new(),
             inputs: inputs.iter().map(|(n, s)| (n.to_string(), s.clone())).collect(),
             outputs: outputs.iter().map(|(n, s)| (n.to_string(), s.clone())).collect(),
+            variants: BTreeMap::new(),
         }
     }
 
@@ -294,6 +369,7 @@ mod tests {
                     &[("keypoints", vec![-1, k, 3]), ("segmentation", vec![-1, n, k])],
                 ),
             },
+            precision: None,
         }
     }
 
@@ -347,10 +423,63 @@ mod tests {
     #[test]
     fn a_wrong_hash_is_refused() {
         let d = dir_with_files();
-        let e = check_sha256(&d.path().join("c.onnx"), "00", ModelKind::Camera).unwrap_err().to_string();
+        let e = check_sha256(&d.path().join("c.onnx"), "00", "models.camera.sha256").unwrap_err().to_string();
         assert!(e.contains("models.camera.sha256") && e.contains("the manifest says 00"), "{e}");
         // sha256("x")
         let good = "2d711642b726b04401627ca9fbac32f5c8530fb1903cc4db02258717921a4881";
-        check_sha256(&d.path().join("c.onnx"), good, ModelKind::Camera).unwrap();
+        check_sha256(&d.path().join("c.onnx"), good, "models.camera.sha256").unwrap();
+    }
+
+    /// sha256 of "x" and of "y".
+    const SHA_X: &str = "2d711642b726b04401627ca9fbac32f5c8530fb1903cc4db02258717921a4881";
+    const SHA_Y: &str = "a1fce4363854ff888cff4b8e7875d600c2682390412a8cf79b37d0b11148b0fa";
+
+    /// A bundle on disk whose camera has an INT8 variant `c8.onnx` (contents "y").
+    fn bundle_with_variant(precision: Option<Precision>) -> tempfile::TempDir {
+        let d = dir_with_files();
+        std::fs::write(d.path().join("c8.onnx"), b"y").unwrap();
+        let mut m = manifest();
+        for s in [&mut m.models.camera, &mut m.models.point_fusion, &mut m.models.point_lidar] {
+            s.sha256 = SHA_X.into();
+        }
+        m.models.camera.variants.insert("int8".into(), VariantSpec { file: "c8.onnx".into(), sha256: SHA_Y.into() });
+        m.precision = precision;
+        std::fs::write(d.path().join("manifest.json"), serde_json::to_vec(&m).unwrap()).unwrap();
+        d
+    }
+
+    #[test]
+    fn the_camera_runs_from_the_variant_of_the_asked_or_the_manifests_precision() {
+        let d = bundle_with_variant(None);
+        let b = Bundle::load(d.path()).unwrap();
+        assert_eq!((b.precision, b.camera.path.file_name().unwrap().to_str()), (Precision::Fp32, Some("c.onnx")));
+        let b = Bundle::load_at(d.path(), Some(Precision::Int8)).unwrap();
+        assert_eq!((b.precision, b.camera.path.file_name().unwrap().to_str()), (Precision::Int8, Some("c8.onnx")));
+        // the point networks keep their files; the variant declares the same tensors
+        assert!(b.point_fusion.path.ends_with("f.onnx") && b.camera.input == "image");
+        let d = bundle_with_variant(Some(Precision::Int8));
+        assert_eq!(Bundle::load(d.path()).unwrap().precision, Precision::Int8);
+        let b = Bundle::load_at(d.path(), Some(Precision::Fp32)).unwrap();
+        assert!(b.camera.path.ends_with("c.onnx"));
+    }
+
+    #[test]
+    fn a_missing_or_altered_variant_is_refused_with_its_field() {
+        let d = dir_with_files();
+        let mut m = manifest();
+        for s in [&mut m.models.camera, &mut m.models.point_fusion, &mut m.models.point_lidar] {
+            s.sha256 = SHA_X.into();
+        }
+        std::fs::write(d.path().join("manifest.json"), serde_json::to_vec(&m).unwrap()).unwrap();
+        let e = Bundle::load_at(d.path(), Some(Precision::Int8)).unwrap_err().to_string();
+        assert!(e.contains("models.camera.variants.int8") && e.contains("posefuse_train.quantize"), "{e}");
+        let d = bundle_with_variant(None);
+        std::fs::write(d.path().join("c8.onnx"), b"z").unwrap();
+        let e = Bundle::load_at(d.path(), Some(Precision::Int8)).unwrap_err().to_string();
+        assert!(e.contains("models.camera.variants.int8.sha256"), "{e}");
+        assert!(Bundle::load(d.path()).is_ok(), "fp32 does not read the variant");
+        std::fs::remove_file(d.path().join("c8.onnx")).unwrap();
+        let e = Bundle::load_at(d.path(), Some(Precision::Int8)).unwrap_err().to_string();
+        assert!(e.contains("models.camera.variants.int8.file"), "{e}");
     }
 }
