@@ -133,6 +133,11 @@ pub struct ServeArgs {
     /// Log as JSON lines instead of text.
     #[arg(long, env = "POSEFUSE_LOG_JSON")]
     pub log_json: bool,
+    /// An OpenTelemetry collector's OTLP/HTTP address (e.g. http://localhost:4318): each
+    /// request's spans (admission, pre-processing, queue, inference, response) are exported to
+    /// its /v1/traces in protobuf (docs/OPERATIONS.md, "Following a request").
+    #[arg(long, env = "POSEFUSE_OTLP_ENDPOINT")]
+    pub otlp_endpoint: Option<String>,
     /// Seconds the drain may take after SIGTERM (once the listener closes); then the process
     /// exits anyway, logging what was cut.
     #[arg(long, env = "POSEFUSE_DRAIN_TIMEOUT", default_value_t = ServerConfig::DRAIN_TIMEOUT_S)]

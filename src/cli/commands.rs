@@ -12,13 +12,10 @@ use tonic_health::pb::health_check_response::ServingStatus;
 
 use super::args::{EvalArgs, HealthArgs, PredictArgs, RuntimeArgs, ServeArgs, SimulateArgs};
 
+/// Logging to stderr for the commands that do not export spans.
 pub fn init_tracing(json: bool) {
-    let filter = tracing_subscriber::EnvFilter::try_from_default_env()
-        .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info,ort=warn"));
-    // Colour codes only for a person at a terminal, not in a container's or a collector's log.
-    let ansi = std::io::IsTerminal::is_terminal(&std::io::stderr());
-    let builder = tracing_subscriber::fmt().with_env_filter(filter).with_writer(std::io::stderr).with_ansi(ansi);
-    let _ = if json { builder.json().try_init() } else { builder.try_init() };
+    // without an endpoint there is no exporter to keep, and nothing can fail
+    let _ = super::telemetry::init(json, None);
 }
 
 pub fn tokio_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
@@ -29,10 +26,12 @@ pub fn tokio_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
 /// exits 0.
 pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
     super::allocator::purge_freed_memory_at_once();
-    init_tracing(a.log_json);
+    let telemetry = super::telemetry::init(a.log_json, a.otlp_endpoint.as_deref())?;
     let config = a.server_config()?;
-    tracing::info!(addr = %a.addr, ?config, "effective configuration");
-    Ok(tokio_runtime()?.block_on(posefuse::server::serve_with_signals(config, a.addr))?)
+    tracing::info!(addr = %a.addr, ?config, otlp_endpoint = ?a.otlp_endpoint, "effective configuration");
+    let served = tokio_runtime()?.block_on(posefuse::server::serve_with_signals(config, a.addr));
+    telemetry.shutdown();
+    Ok(served?)
 }
 
 /// Starts the runtime for a CLI command and waits for warm-up.

@@ -4,4 +4,5 @@ pub mod allocator;
 pub mod args;
 pub mod commands;
 pub mod mcap;
+pub mod telemetry;
 pub mod waymo;

@@ -89,6 +89,10 @@ struct Job {
     work: Work,
     enqueued: Instant,
     reply: oneshot::Sender<Result<JobOutput>>,
+    /// The span the job was queued from (a request's), parent of its `inference` span.
+    parent: tracing::Span,
+    /// Open while the job waits: a worker taking it ends the wait.
+    queue: tracing::Span,
 }
 
 /// A camera-batch entry: the item, its input, and for a chain the point network and the step.
@@ -97,6 +101,8 @@ type CameraEntry = (Item, Vec<f32>, Option<(ModelKind, ChainStep)>);
 /// A job's place in the batches of one worker round.
 struct Item {
     job_reply: oneshot::Sender<Result<JobOutput>>,
+    /// From the round's start to the reply.
+    span: tracing::Span,
     queue: Duration,
     camera: Option<Vec<f32>>,
     inference: Duration,
@@ -254,7 +260,9 @@ impl Runtime {
     async fn submit(&self, work: Work) -> Result<JobOutput> {
         let (reply, rx) = oneshot::channel();
         let tx = self.tx.as_ref().ok_or_else(|| Error::Unavailable("shutting down".into()))?;
-        match tx.try_send(Job { work, enqueued: Instant::now(), reply }) {
+        let queue = tracing::info_span!("queue", model = kind_of(&work).key());
+        let job = Job { work, enqueued: Instant::now(), reply, parent: tracing::Span::current(), queue };
+        match tx.try_send(job) {
             Ok(()) => metrics::gauge!("posefuse_queue_depth").set(tx.len() as f64),
             Err(TrySendError::Full(_)) => return Err(Error::Overloaded),
             Err(TrySendError::Disconnected(_)) => return Err(Error::Unavailable("shutting down".into())),
@@ -311,22 +319,21 @@ fn worker_loop(models: &mut Models, rx: &Receiver<Job>, gate: &Gate, max_batch: 
 /// one batch per point network; between the stages, jobs whose callers gave up are dropped.
 fn run_round(models: &mut Models, jobs: Vec<Job>) {
     let started = Instant::now();
-    let item = |reply, enqueued: Instant, kind: ModelKind| {
+    let item = |reply, enqueued: Instant, kind: ModelKind, parent: tracing::Span, queue_span: tracing::Span| {
         let queue = started.saturating_duration_since(enqueued);
         metrics::histogram!("posefuse_queue_wait_seconds", "model" => kind.key()).record(queue.as_secs_f64());
-        Item { job_reply: reply, queue, camera: None, inference: Duration::ZERO, between: Duration::ZERO }
+        drop(queue_span);
+        let span = tracing::info_span!(parent: &parent, "inference", model = kind.key(), batch = tracing::field::Empty);
+        Item { job_reply: reply, span, queue, camera: None, inference: Duration::ZERO, between: Duration::ZERO }
     };
     let mut camera: Vec<CameraEntry> = Vec::new();
     let mut points: [Vec<(Item, Vec<f32>)>; 3] = Default::default();
     for j in jobs {
+        let it = item(j.reply, j.enqueued, kind_of(&j.work), j.parent, j.queue);
         match j.work {
-            Work::Single { kind: ModelKind::Camera, input } => {
-                camera.push((item(j.reply, j.enqueued, ModelKind::Camera), input, None))
-            }
-            Work::Single { kind, input } => points[slot(kind)].push((item(j.reply, j.enqueued, kind), input)),
-            Work::Chain { camera: input, point, then } => {
-                camera.push((item(j.reply, j.enqueued, ModelKind::Camera), input, Some((point, then))))
-            }
+            Work::Single { kind: ModelKind::Camera, input } => camera.push((it, input, None)),
+            Work::Single { kind, input } => points[slot(kind)].push((it, input)),
+            Work::Chain { camera: input, point, then } => camera.push((it, input, Some((point, then)))),
         }
     }
     if !camera.is_empty() {
@@ -370,11 +377,20 @@ fn run_round(models: &mut Models, jobs: Vec<Job>) {
     }
 }
 
+/// The network a job starts with.
+fn kind_of(work: &Work) -> ModelKind {
+    match work {
+        Work::Single { kind, .. } => *kind,
+        Work::Chain { .. } => ModelKind::Camera,
+    }
+}
+
 fn slot(kind: ModelKind) -> usize {
     ModelKind::ALL.iter().position(|k| *k == kind).unwrap_or(0)
 }
 
 fn reply(it: Item, out: Result<Vec<f32>>, batch: usize) {
+    it.span.record("batch", batch);
     let _ = it.job_reply.send(out.map(|data| JobOutput {
         data,
         camera: it.camera,

@@ -1,15 +1,18 @@
 //! Each request on the serving port, HTTP and gRPC alike: its id (`x-request-id`, taken from the
 //! caller or made, and echoed), its W3C trace context (`traceparent`, continued or started, and
 //! returned naming this server's span), a `request` span that every log line written while it is
-//! answered carries, one access-log line and its latency metric. See docs/OPERATIONS.md
-//! ("Following a request").
+//! answered carries, one access-log line and its latency metric. When the process exports spans
+//! (OpenTelemetry, `--otlp-endpoint`), the `request` span is the caller's span's child and the
+//! ids returned are the exported span's. See docs/OPERATIONS.md ("Following a request").
 
 use std::time::Instant;
 
 use axum::extract::Request;
 use axum::http::{HeaderMap, HeaderValue, Response};
 use axum::middleware::Next;
+use opentelemetry::trace::{SpanContext, SpanId, TraceContextExt, TraceFlags, TraceId, TraceState};
 use tracing::Instrument;
+use tracing_opentelemetry::OpenTelemetrySpanExt;
 
 /// The request-id header, accepted and echoed.
 pub const REQUEST_ID: &str = "x-request-id";
@@ -54,6 +57,38 @@ impl TraceContext {
 
     pub fn trace_id_hex(&self) -> String {
         format!("{:032x}", self.trace_id)
+    }
+
+    /// The caller's span as OpenTelemetry's remote parent, when the caller sent one.
+    fn remote_parent(&self) -> Option<opentelemetry::Context> {
+        let parent = self.parent_id?;
+        let sc = SpanContext::new(
+            TraceId::from_bytes(self.trace_id.to_be_bytes()),
+            SpanId::from_bytes(parent.to_be_bytes()),
+            TraceFlags::new(self.flags),
+            true,
+            TraceState::default(),
+        );
+        Some(opentelemetry::Context::new().with_remote_span_context(sc))
+    }
+
+    /// Links `span` to the caller's span and, when spans are exported (the span has an
+    /// OpenTelemetry context of its own), takes that span's trace id, id and sampling flag, so
+    /// that what is returned and logged names what the collector receives.
+    fn adopt(self, span: &tracing::Span) -> TraceContext {
+        if let Some(cx) = self.remote_parent() {
+            let _ = span.set_parent(cx);
+        }
+        let otel = span.context().span().span_context().clone();
+        if !otel.is_valid() {
+            return self;
+        }
+        TraceContext {
+            trace_id: u128::from_be_bytes(otel.trace_id().to_bytes()),
+            parent_id: self.parent_id,
+            span_id: u64::from_be_bytes(otel.span_id().to_bytes()),
+            flags: otel.trace_flags().to_u8(),
+        }
     }
 }
 
@@ -135,11 +170,14 @@ fn outcome<B>(resp: &Response<B>, grpc: bool, path: &str) -> (String, String) {
 /// Middleware of the serving port (outermost but for the in-flight count).
 pub async fn trace_request(req: Request, next: Next) -> axum::response::Response {
     let t0 = Instant::now();
-    let trace = TraceContext::from_headers(req.headers(), rand::random(), rand::random());
-    let id = request_id(req.headers(), || trace.trace_id_hex());
+    let given = TraceContext::from_headers(req.headers(), rand::random(), rand::random());
     let grpc = super::is_grpc(&req);
     let (method, path) = (req.method().clone(), req.uri().path().to_string());
-    let span = tracing::info_span!("request", request_id = %id, trace_id = %trace.trace_id_hex());
+    let span = tracing::info_span!("request", request_id = tracing::field::Empty, trace_id = tracing::field::Empty);
+    let trace = given.adopt(&span);
+    let id = request_id(req.headers(), || trace.trace_id_hex());
+    span.record("request_id", id.as_str());
+    span.record("trace_id", trace.trace_id_hex().as_str());
     let mut resp = next.run(req).instrument(span.clone()).await;
     let (route, status) = outcome(&resp, grpc, &path);
     if let Ok(v) = HeaderValue::from_str(&id) {

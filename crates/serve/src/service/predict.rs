@@ -8,6 +8,8 @@ use std::sync::atomic::{AtomicBool, Ordering};
 use std::sync::{Arc, RwLock};
 use std::time::{Duration, Instant};
 
+use tracing::Instrument;
+
 use super::admission::{Admission, Ticket};
 use super::api::{BatchItem, KeypointPose, Mode, ModelRef, PersonPose, PoseResponse, Timings};
 use super::crop_cache::CropCache;
@@ -158,6 +160,7 @@ impl Predictor {
                 let boxes = valid.boxes();
                 let mut plan = plan_frame(&mut valid, &boxes, first.bundle().config(), &mut crops, abandoned)?;
                 plan.decode += validated;
+                record_plan(&plan);
                 Ok((valid, crops, plan))
             })
             .await?;
@@ -171,6 +174,7 @@ impl Predictor {
         let (valid, plan) = self
             .off_executor(ticket, &abandoned, move |abandoned| {
                 let plan = plan_frame(&mut valid, &boxes, &cfg, &mut crops, abandoned)?;
+                record_plan(&plan);
                 Ok((valid, plan))
             })
             .await?;
@@ -185,10 +189,15 @@ impl Predictor {
         abandoned: &Arc<AtomicBool>,
         work: impl FnOnce(&AtomicBool) -> Result<T> + Send + 'static,
     ) -> Result<T> {
-        let permit = self.admission.enter(ticket).await?;
+        let permit = self.admission.enter(ticket).instrument(tracing::info_span!("admission")).await?;
         let abandoned = abandoned.clone();
+        // decode and pre-processing are one step (crops are decoded as they are cut); the span
+        // carries the split
+        let span =
+            tracing::info_span!("preprocess", decode_ms = tracing::field::Empty, preprocess_ms = tracing::field::Empty);
         tokio::task::spawn_blocking(move || {
             let _permit = permit;
+            let _in = span.enter();
             work(&abandoned)
         })
         .await
@@ -209,6 +218,7 @@ impl Predictor {
             if runtime.bundle().config().point_frame() == PointFrame::BoxHeading { self.refine } else { Refine::OFF };
         let on = OnRuntime { runtime, cameras: &frame.cameras.cameras, names: &frame.cameras.names, refine };
         let results = futures::future::try_join_all(plan.persons.into_iter().map(|p| on.run_person(p))).await?;
+        let _response = tracing::info_span!("response").entered();
         let mut persons = Vec::with_capacity(results.len());
         let (mut queue, mut inference, mut post) = (Duration::ZERO, Duration::ZERO, Duration::ZERO);
         for (pose, t) in results {
@@ -432,3 +442,11 @@ fn triples(v: &[f32]) -> Vec<[f32; 3]> {
 /// Persons per frame by default: each one scans every point of the frame, so the work is
 /// bounded here (`--max-persons`).
 pub const MAX_PERSONS: usize = 256;
+
+/// The decode and pre-processing times of a planned frame, on the `preprocess` span it was
+/// planned in.
+fn record_plan(plan: &FramePlan) {
+    let span = tracing::Span::current();
+    span.record("decode_ms", ms(plan.decode));
+    span.record("preprocess_ms", ms(plan.preprocess));
+}
