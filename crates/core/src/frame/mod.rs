@@ -638,6 +638,10 @@ mod tests {
         assert_eq!(Visibility::select(&v, Visibility::Visible), [true, false, false, false]);
         // frames written before occlusion flags existed: every labelled keypoint was visible
         assert_eq!(Visibility::of(&[true, false], &[]), [Visibility::Visible, Visibility::Missing]);
+        let k3 = Keypoints3d { xyz: vec![[0.0; 3]; 2], visible: vec![false, true], occluded: vec![true, false] };
+        assert_eq!(k3.visibility(), [Visibility::Occluded, Visibility::Visible]);
+        let k2 = Keypoints2d { uv: vec![[0.0; 2]; 2], visible: vec![true, false], occluded: vec![] };
+        assert_eq!(k2.visibility(), [Visibility::Visible, Visibility::Missing]);
     }
 
     #[test]

@@ -420,5 +420,23 @@ mod tests {
         assert!((b["occluded"].mpjpe_3d_m.unwrap() - 0.4).abs() < 1e-12);
         assert_eq!((b["visible"].count_3d, b["occluded"].count_3d), (1, 1));
         assert_eq!(acc.reports()["lidar"], *all);
+        let report = EvalReport {
+            data: PathBuf::from("d"),
+            model: ModelRef { name: "m".into(), version: "1".into() },
+            mode: None,
+            heading_noise: None,
+            frames: 1,
+            failed_frames: 0,
+            skipped_persons: 0,
+            failures: Vec::new(),
+            metrics: acc.reports(),
+            breakdown: b,
+            diagnostics: acc.diagnostics(),
+        };
+        let text = report.text();
+        assert!(text.contains("model m 1 on d (1 frames"), "{text}");
+        assert!(text.contains("MPJPE                        0.1250 m"), "{text}");
+        assert!(text.contains("breakdown, occluded keypoints only (3D): OKS/ACC"), "{text}");
+        assert!(text.contains("MPJPE 40.00 cm (1 persons)"), "{text}");
     }
 }

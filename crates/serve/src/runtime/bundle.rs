@@ -478,6 +478,10 @@ mod tests {
         let e = Bundle::load_at(d.path(), Some(Precision::Int8)).unwrap_err().to_string();
         assert!(e.contains("models.camera.variants.int8.sha256"), "{e}");
         assert!(Bundle::load(d.path()).is_ok(), "fp32 does not read the variant");
+        std::fs::write(d.path().join("c.onnx"), b"z").unwrap();
+        let e = Bundle::load(d.path()).unwrap_err().to_string();
+        assert!(e.starts_with("models.camera.sha256") || e.contains(": models.camera.sha256:"), "{e}");
+        std::fs::write(d.path().join("c.onnx"), b"x").unwrap();
         std::fs::remove_file(d.path().join("c8.onnx")).unwrap();
         let e = Bundle::load_at(d.path(), Some(Precision::Int8)).unwrap_err().to_string();
         assert!(e.contains("models.camera.variants.int8.file"), "{e}");
