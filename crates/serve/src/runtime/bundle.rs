@@ -127,8 +127,6 @@ pub struct Bundle {
     pub point_lidar: ModelIo,
     /// The camera network's precision (its file is `camera.path`).
     pub precision: Precision,
-    /// The camera file's expected hash at that precision.
-    camera_sha256: String,
 }
 
 impl Bundle {
@@ -179,7 +177,6 @@ impl Bundle {
                 )));
             }
             self.camera.path = path;
-            self.camera_sha256 = v.sha256.clone();
         }
         self.precision = p;
         Ok(self)
@@ -196,7 +193,11 @@ impl Bundle {
     /// The hash a model's file must have at the bundle's precision.
     fn sha256(&self, kind: ModelKind) -> &str {
         match kind {
-            ModelKind::Camera => &self.camera_sha256,
+            // `at_precision` made sure the variant exists
+            ModelKind::Camera if self.precision != Precision::Fp32 => {
+                let variants = &self.manifest.models.camera.variants;
+                variants.get(self.precision.key()).map_or("", |v| v.sha256.as_str())
+            }
             other => &self.spec(other).sha256,
         }
     }
@@ -222,7 +223,6 @@ impl Bundle {
         let camera = resolve(dir, ModelKind::Camera, &manifest.models.camera, &[3, s, s], &[K, h, h])?;
         let point_fusion = resolve(dir, ModelKind::PointFusion, &manifest.models.point_fusion, &[n, 3 + K], &[K, 3])?;
         let point_lidar = resolve(dir, ModelKind::PointLidar, &manifest.models.point_lidar, &[n, 3], &[K, 3])?;
-        let camera_sha256 = manifest.models.camera.sha256.clone();
         Ok(Bundle {
             dir: dir.to_path_buf(),
             manifest,
@@ -231,7 +231,6 @@ impl Bundle {
             point_fusion,
             point_lidar,
             precision: Precision::Fp32,
-            camera_sha256,
         })
     }
 
