@@ -98,6 +98,8 @@ fn round_trip(alt: bool) {
     assert_eq!(sum.samples, sim.samples.len(), "one sample per camera object with keypoints");
     let a = shard_arrays(&out);
     let p = a["points_xyz"].shape()[1];
+    // persons with 3D labels; visible and occluded 3D and 2D keypoints over all samples
+    let mut seen = (0, 0, 0, 0, 0);
     for (i, s) in sim.samples.iter().enumerate() {
         let pick = |name: &str| a[name].index_axis(ndarray::Axis(0), i).iter().copied().collect::<Vec<f32>>();
         close(&pick("box3d"), &s.box3d, 1e-5, "box3d");
@@ -118,6 +120,12 @@ fn round_trip(alt: bool) {
         assert_eq!(flags("kp3d_occluded"), s.kp3d_occluded, "kp3d_occluded of sample {i}");
         let labelled: Vec<u8> = s.kp3d_visible.iter().zip(&s.kp3d_occluded).map(|(v, o)| v + o).collect();
         assert!(labelled == [0; 13] || labelled == [1; 13], "all 13 or none: {labelled:?}");
+        let count = |v: &[u8]| v.iter().map(|&x| x as usize).sum::<usize>();
+        seen.0 += usize::from(labelled == [1; 13]);
+        seen.1 += count(&s.kp3d_visible);
+        seen.2 += count(&s.kp3d_occluded);
+        seen.3 += count(&s.kp2d_visible);
+        seen.4 += count(&s.kp2d_occluded);
         close(&pick("crop"), &s.crop, 1e-3, "crop");
         // Same crops: the same JPEG bytes went through the same crop.
         let img: Vec<u8> = {
@@ -157,6 +165,9 @@ fn round_trip(alt: bool) {
             assert!(d < 0.005, "sample {i}: a converted point is {d} m from every simulated one");
         }
     }
+    // the simulator's labels come through as labels: some persons labelled in 3D, with both
+    // visible and occluded keypoints in 3D and in 2D
+    assert!(seen.0 > 0 && seen.1 > 0 && seen.2 > 0 && seen.3 > 0 && seen.4 > 0, "{seen:?}");
     let fixtures = std::fs::read_dir(out.join("requests")).unwrap().count();
     assert_eq!(fixtures, sum.fixtures);
     assert!(fixtures >= FRAMES, "at least one fixture per frame");
