@@ -394,6 +394,7 @@ async fn health_and_metadata_name_the_model_and_every_tensor() {
         inputs,
         [
             ("image", "BYTES"),
+            ("image_rgb", "UINT8"),
             ("points", "FP32"),
             ("calibration_intrinsic", "FP64"),
             ("calibration_extrinsic", "FP64"),
@@ -426,7 +427,7 @@ async fn health_and_metadata_name_the_model_and_every_tensor() {
         .unwrap()
         .into_inner();
     assert_eq!((m.name.as_str(), m.versions.clone()), ("default", vec![version]));
-    assert_eq!(m.inputs.len(), 9);
+    assert_eq!(m.inputs.len(), 10);
     assert_eq!((m.outputs[3].name.as_str(), m.outputs[3].datatype.as_str()), ("mode", "BYTES"));
     let e = c.model_metadata(proto::ModelMetadataRequest { name: "other".into(), version: String::new() }).await;
     assert_eq!(e.unwrap_err().code(), tonic::Code::NotFound);

@@ -187,6 +187,14 @@ pub struct ServeArgs {
     /// InferenceService's; default: the bundle manifest's name.
     #[arg(long, env = "POSEFUSE_MODEL_NAME")]
     pub model_name: Option<String>,
+    /// Offers KServe's system shared-memory extension: clients on this host may register POSIX
+    /// shared-memory objects (/dev/shm) and pass tensors through them (docs/KSERVE.md). Off by
+    /// default: a registration makes the server read and write an object the client names.
+    #[arg(long, env = "POSEFUSE_SYSTEM_SHARED_MEMORY")]
+    pub system_shared_memory: bool,
+    /// Shared-memory regions registered at once.
+    #[arg(long, env = "POSEFUSE_SHARED_MEMORY_REGIONS", default_value_t = posefuse::server::kserve::shared_memory::MAX_REGIONS)]
+    pub shared_memory_regions: usize,
 }
 
 impl ServeArgs {
@@ -223,6 +231,11 @@ impl ServeArgs {
                 repository: self.model_repository.clone(),
             },
             v2_model_name: self.model_name.clone(),
+            shared_memory: posefuse::server::kserve::shared_memory::SharedMemoryConfig {
+                enabled: self.system_shared_memory,
+                max_regions: self.shared_memory_regions,
+                ..Default::default()
+            },
         })
     }
 }

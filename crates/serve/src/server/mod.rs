@@ -66,6 +66,8 @@ pub struct ServerConfig {
     pub admin: admin::AdminConfig,
     /// The Open Inference Protocol's model name (`--model-name`); the manifest's when `None`.
     pub v2_model_name: Option<String>,
+    /// KServe's system shared-memory extension (`--system-shared-memory`): off by default.
+    pub shared_memory: kserve::shared_memory::SharedMemoryConfig,
 }
 
 impl ServerConfig {
@@ -100,6 +102,7 @@ impl ServerConfig {
             refine: crate::service::heading_stage::Refine::OFF,
             admin: admin::AdminConfig::default(),
             v2_model_name: None,
+            shared_memory: kserve::shared_memory::SharedMemoryConfig::default(),
         }
     }
 }
@@ -120,6 +123,8 @@ pub struct AppState {
     pub admin: Arc<admin::AdminConfig>,
     /// The Open Inference Protocol's model name when not the manifest's (`--model-name`).
     pub v2_model_name: Option<Arc<str>>,
+    /// The registered shared-memory regions (KServe's extension).
+    pub shared_memory: Arc<kserve::shared_memory::SystemSharedMemory>,
     /// Warm-up done and the gRPC health status published (what /readyz reports).
     pub ready: Arc<AtomicBool>,
     pub prometheus: Option<metrics_exporter_prometheus::PrometheusHandle>,
@@ -154,6 +159,7 @@ impl App {
             reloader: Arc::new(reloader),
             admin: Arc::new(config.admin.clone()),
             v2_model_name: config.v2_model_name.as_deref().map(Arc::from),
+            shared_memory: Arc::new(kserve::shared_memory::SystemSharedMemory::new(config.shared_memory.clone())),
             ready: Arc::new(AtomicBool::new(false)),
             prometheus: metrics::install(),
         };

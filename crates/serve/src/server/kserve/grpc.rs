@@ -8,7 +8,11 @@ use tonic::{Request, Response, Status};
 use super::super::errors::{grpc_code, grpc_status};
 use super::super::metrics::count_grpc as count;
 use super::super::AppState;
-use super::tensors::{DataType, InputTensor, RequestedOutput, TensorData, TensorSpec, INPUTS, OUTPUTS};
+use std::collections::HashMap;
+
+use super::shared_memory::ShmRef;
+use super::shared_tensors::SharedInput;
+use super::tensors::{DataType, InputTensor, Placement, RequestedOutput, TensorData, TensorSpec, INPUTS, OUTPUTS};
 use super::{InferRequest, InferResponse};
 use posefuse_core::error::{Error, Result};
 
@@ -80,8 +84,18 @@ fn model_config(name: String) -> proto::ModelConfig {
 
 /// The methods of `inference.GRPCInferenceService` this server implements; any other is
 /// answered UNIMPLEMENTED with a message (tonic's own answer has none).
-pub const METHODS: [&str; 7] =
-    ["ServerLive", "ServerReady", "ModelReady", "ServerMetadata", "ModelMetadata", "ModelInfer", "ModelConfig"];
+pub const METHODS: [&str; 10] = [
+    "ServerLive",
+    "ServerReady",
+    "ModelReady",
+    "ServerMetadata",
+    "ModelMetadata",
+    "ModelInfer",
+    "ModelConfig",
+    "SystemSharedMemoryStatus",
+    "SystemSharedMemoryRegister",
+    "SystemSharedMemoryUnregister",
+];
 
 /// The path of `ModelInfer` (admitted before its message is read).
 pub const INFER_PATH: &str = "/inference.GRPCInferenceService/ModelInfer";
@@ -106,9 +120,13 @@ fn from_contents(name: &str, dt: DataType, c: proto::InferTensorContents) -> Res
             TensorData::Int(c.int_contents.into_iter().map(i64::from).collect())
         }
         DataType::I64 => TensorData::Int(c.int64_contents),
-        DataType::U8 | DataType::U16 | DataType::U32 => {
-            TensorData::UInt(c.uint_contents.into_iter().map(u64::from).collect())
-        }
+        DataType::U8 => TensorData::U8(
+            c.uint_contents
+                .into_iter()
+                .map(|x| u8::try_from(x).map_err(|_| Error::field(name, format!("element {x} is not 0..=255"))))
+                .collect::<Result<_>>()?,
+        ),
+        DataType::U16 | DataType::U32 => TensorData::UInt(c.uint_contents.into_iter().map(u64::from).collect()),
         DataType::U64 => TensorData::UInt(c.uint64_contents),
         DataType::F32 => TensorData::F32(c.fp32_contents),
         DataType::F64 => TensorData::F64(c.fp64_contents),
@@ -119,19 +137,60 @@ fn from_contents(name: &str, dt: DataType, c: proto::InferTensorContents) -> Res
     })
 }
 
-/// A `ModelInferRequest` as an inference request (tensors checked against their shapes).
+/// Where a tensor lies in shared memory, from its `shared_memory_region`,
+/// `shared_memory_byte_size` and `shared_memory_offset` parameters (integers as `int64_param`,
+/// as tritonclient sends them, or `uint64_param`); `None` without a region.
+fn shm_param(params: &HashMap<String, proto::InferParameter>, tensor: &str) -> Result<Option<ShmRef>> {
+    use proto::infer_parameter::ParameterChoice as P;
+    let Some(region) = params.get("shared_memory_region") else { return Ok(None) };
+    let Some(P::StringParam(region)) = &region.parameter_choice else {
+        return Err(Error::field(tensor, "parameter `shared_memory_region` must be a string"));
+    };
+    let number = |key: &str| -> Result<Option<u64>> {
+        match params.get(key).map(|p| &p.parameter_choice) {
+            None => Ok(None),
+            Some(Some(P::Int64Param(n))) if *n >= 0 => Ok(Some(*n as u64)),
+            Some(Some(P::Uint64Param(n))) => Ok(Some(*n)),
+            Some(_) => Err(Error::field(tensor, format!("parameter `{key}` must be a non-negative integer"))),
+        }
+    };
+    let byte_size = number("shared_memory_byte_size")?.ok_or_else(|| {
+        Error::field(tensor, "parameter `shared_memory_byte_size` is required with `shared_memory_region`")
+    })?;
+    Ok(Some(ShmRef { region: region.clone(), byte_size, offset: number("shared_memory_offset")?.unwrap_or(0) }))
+}
+
+/// A `ModelInferRequest` as an inference request (tensors checked against their shapes). With
+/// `raw_input_contents`, inputs in shared memory have no entry there (as Triton's clients send).
 pub fn request_from_proto(r: proto::ModelInferRequest) -> Result<InferRequest> {
     let raw = r.raw_input_contents;
-    if !raw.is_empty() && raw.len() != r.inputs.len() {
+    let mut shared = Vec::new();
+    let mut in_message = Vec::with_capacity(r.inputs.len());
+    for t in r.inputs {
+        let dt = DataType::parse(&t.name, &t.datatype)?;
+        match shm_param(&t.parameters, &t.name)? {
+            Some(at) => {
+                if t.contents.is_some() {
+                    return Err(Error::field(t.name.as_str(), "has both shared memory and contents"));
+                }
+                shared.push(SharedInput { name: t.name, datatype: dt, shape: t.shape, at });
+            }
+            None => in_message.push((t, dt)),
+        }
+    }
+    if !raw.is_empty() && raw.len() != in_message.len() {
         return Err(Error::field(
             "raw_input_contents",
-            format!("{} entries for {} inputs: one per input, or none", raw.len(), r.inputs.len()),
+            format!(
+                "{} entries for {} inputs not in shared memory: one per such input, or none",
+                raw.len(),
+                in_message.len()
+            ),
         ));
     }
     let mut raw = raw.into_iter();
-    let mut inputs = Vec::with_capacity(r.inputs.len());
-    for t in r.inputs {
-        let dt = DataType::parse(&t.name, &t.datatype)?;
+    let mut inputs = Vec::with_capacity(in_message.len());
+    for (t, dt) in in_message {
         let data = match raw.next() {
             Some(bytes) => {
                 if t.contents.is_some() {
@@ -143,31 +202,51 @@ pub fn request_from_proto(r: proto::ModelInferRequest) -> Result<InferRequest> {
         };
         inputs.push(InputTensor::new(t.name, dt, t.shape, data, false)?);
     }
-    let outputs: Vec<RequestedOutput> =
-        r.outputs.into_iter().map(|o| RequestedOutput { name: o.name, binary: Some(true) }).collect();
+    let outputs: Vec<RequestedOutput> = r
+        .outputs
+        .into_iter()
+        .map(|o| {
+            let shared_memory = shm_param(&o.parameters, &o.name)?;
+            Ok(RequestedOutput { name: o.name, binary: Some(true), shared_memory })
+        })
+        .collect::<Result<_>>()?;
     Ok(InferRequest {
         model_name: r.model_name,
         model_version: Some(r.model_version),
         id: (!r.id.is_empty()).then_some(r.id),
         inputs,
+        shared_inputs: shared,
         outputs: (!outputs.is_empty()).then_some(outputs),
         binary_output: true,
     })
 }
 
-/// A response as a `ModelInferResponse` with every output in `raw_output_contents`.
+/// A response as a `ModelInferResponse` with every output in `raw_output_contents`; one
+/// written to shared memory has an empty entry there (so that entries stay in output order)
+/// and names its region and the bytes written in its parameters.
 pub fn response_to_proto(r: InferResponse) -> proto::ModelInferResponse {
+    use proto::infer_parameter::ParameterChoice as P;
+    let param = |c: P| proto::InferParameter { parameter_choice: Some(c) };
     let mut raw = Vec::with_capacity(r.outputs.len());
     let outputs = r
         .outputs
         .into_iter()
-        .map(|(t, _)| {
-            raw.push(t.data.to_raw(t.datatype));
+        .map(|(t, placement)| {
+            let mut parameters = HashMap::new();
+            match placement {
+                Placement::SharedMemory(at) => {
+                    raw.push(Vec::new());
+                    parameters.insert("shared_memory_region".into(), param(P::StringParam(at.region)));
+                    parameters.insert("shared_memory_byte_size".into(), param(P::Int64Param(at.byte_size as i64)));
+                    parameters.insert("shared_memory_offset".into(), param(P::Int64Param(at.offset as i64)));
+                }
+                Placement::Json | Placement::Binary => raw.push(t.data.to_raw(t.datatype)),
+            }
             proto::model_infer_response::InferOutputTensor {
                 name: t.name.into(),
                 datatype: t.datatype.as_str().into(),
                 shape: t.shape,
-                parameters: Default::default(),
+                parameters,
                 contents: None,
             }
         })
@@ -217,7 +296,7 @@ impl GrpcInferenceService for KserveService {
             Ok(proto::ServerMetadataResponse {
                 name: super::SERVER_NAME.into(),
                 version: env!("CARGO_PKG_VERSION").into(),
-                extensions: super::EXTENSIONS.iter().map(|e| e.to_string()).collect(),
+                extensions: super::extensions(&self.state).iter().map(|e| e.to_string()).collect(),
             }),
         )
     }
@@ -260,6 +339,46 @@ impl GrpcInferenceService for KserveService {
         };
         let result = result.await;
         answer("ModelInfer", result)
+    }
+
+    async fn system_shared_memory_status(
+        &self,
+        request: Request<proto::SystemSharedMemoryStatusRequest>,
+    ) -> std::result::Result<Response<proto::SystemSharedMemoryStatusResponse>, Status> {
+        use proto::system_shared_memory_status_response::RegionStatus;
+        let r = request.into_inner();
+        let result = self.state.shared_memory.status(&r.name).map(|regions| proto::SystemSharedMemoryStatusResponse {
+            regions: regions
+                .into_iter()
+                .map(|s| {
+                    let status =
+                        RegionStatus { name: s.name.clone(), key: s.key, offset: s.offset, byte_size: s.byte_size };
+                    (s.name, status)
+                })
+                .collect(),
+        });
+        answer("SystemSharedMemoryStatus", result)
+    }
+
+    async fn system_shared_memory_register(
+        &self,
+        request: Request<proto::SystemSharedMemoryRegisterRequest>,
+    ) -> std::result::Result<Response<proto::SystemSharedMemoryRegisterResponse>, Status> {
+        let r = request.into_inner();
+        let result = self.state.shared_memory.register(&r.name, &r.key, r.offset, r.byte_size);
+        if result.is_ok() {
+            tracing::info!(region = %r.name, key = %r.key, offset = r.offset, byte_size = r.byte_size, "shared memory registered");
+        }
+        answer("SystemSharedMemoryRegister", result.map(|()| proto::SystemSharedMemoryRegisterResponse {}))
+    }
+
+    async fn system_shared_memory_unregister(
+        &self,
+        request: Request<proto::SystemSharedMemoryUnregisterRequest>,
+    ) -> std::result::Result<Response<proto::SystemSharedMemoryUnregisterResponse>, Status> {
+        let r = request.into_inner();
+        let result = self.state.shared_memory.unregister(&r.name);
+        answer("SystemSharedMemoryUnregister", result.map(|()| proto::SystemSharedMemoryUnregisterResponse {}))
     }
 }
 
@@ -323,5 +442,78 @@ mod tests {
         assert_eq!(request_from_proto(r).unwrap_err().field_name(), Some("raw_input_contents"));
         let e = request_from_proto(request(vec![input("points", "FP16", &[1, 3], Default::default())])).unwrap_err();
         assert_eq!(e.field_name(), Some("points"));
+        let pixels = proto::InferTensorContents { uint_contents: vec![1, 256, 3], ..Default::default() };
+        let e = request_from_proto(request(vec![input("image_rgb", "UINT8", &[1, 1, 3], pixels)])).unwrap_err();
+        assert_eq!(e.field_name(), Some("image_rgb"));
+    }
+
+    fn params(region: proto::infer_parameter::ParameterChoice, size: i64) -> HashMap<String, proto::InferParameter> {
+        use proto::infer_parameter::ParameterChoice as P;
+        let p = |c| proto::InferParameter { parameter_choice: Some(c) };
+        HashMap::from([
+            ("shared_memory_region".to_string(), p(region)),
+            ("shared_memory_byte_size".to_string(), p(P::Int64Param(size))),
+            ("shared_memory_offset".to_string(), p(P::Uint64Param(8))),
+        ])
+    }
+
+    #[test]
+    fn inputs_in_shared_memory_have_no_raw_contents_entry() {
+        use proto::infer_parameter::ParameterChoice as P;
+        let mut image = input("image_rgb", "UINT8", &[2, 2, 3], Default::default());
+        image.contents = None;
+        image.parameters = params(P::StringParam("cam".into()), 12);
+        let mut points = input("points", "FP32", &[1, 3], Default::default());
+        points.contents = None;
+        let mut r = request(vec![image, points]);
+        r.raw_input_contents = vec![[1.0f32, 2.0, 3.0].iter().flat_map(|v| v.to_le_bytes()).collect()];
+        r.outputs = vec![proto::model_infer_request::InferRequestedOutputTensor {
+            name: "scores".into(),
+            parameters: params(P::StringParam("out".into()), 52),
+        }];
+        let req = request_from_proto(r.clone()).unwrap();
+        assert_eq!(req.inputs.len(), 1);
+        assert_eq!(req.inputs[0].data, TensorData::F32(vec![1.0, 2.0, 3.0]));
+        let at = |region: &str, byte_size| ShmRef { region: region.into(), byte_size, offset: 8 };
+        assert_eq!(
+            req.shared_inputs,
+            vec![SharedInput {
+                name: "image_rgb".into(),
+                datatype: DataType::U8,
+                shape: vec![2, 2, 3],
+                at: at("cam", 12)
+            }]
+        );
+        assert_eq!(req.outputs.unwrap()[0].shared_memory, Some(at("out", 52)));
+
+        // one raw entry per input, counting those in shared memory, is one too many
+        let mut extra = r.clone();
+        extra.raw_input_contents.push(vec![0; 12]);
+        assert_eq!(request_from_proto(extra).unwrap_err().field_name(), Some("raw_input_contents"));
+        let mut bad = r.clone();
+        bad.inputs[0].parameters = params(P::BoolParam(true), 12);
+        assert_eq!(request_from_proto(bad).unwrap_err().field_name(), Some("image_rgb"));
+        let mut negative = r;
+        negative.inputs[0].parameters = params(P::StringParam("cam".into()), -1);
+        assert_eq!(request_from_proto(negative).unwrap_err().field_name(), Some("image_rgb"));
+    }
+
+    #[test]
+    fn an_output_in_shared_memory_keeps_raw_contents_in_output_order() {
+        use super::super::tensors::OutputTensor;
+        use proto::infer_parameter::ParameterChoice as P;
+        let t = |name| OutputTensor { name, datatype: DataType::I32, shape: vec![1], data: TensorData::Int(vec![7]) };
+        let at = ShmRef { region: "out".into(), byte_size: 4, offset: 0 };
+        let resp = response_to_proto(InferResponse {
+            model_name: "default".into(),
+            model_version: "1".into(),
+            id: None,
+            outputs: vec![(t("num_points"), Placement::SharedMemory(at)), (t("scores"), Placement::Binary)],
+        });
+        assert_eq!(resp.raw_output_contents, vec![vec![], vec![7, 0, 0, 0]]);
+        let p = &resp.outputs[0].parameters;
+        assert_eq!(p["shared_memory_region"].parameter_choice, Some(P::StringParam("out".into())));
+        assert_eq!(p["shared_memory_byte_size"].parameter_choice, Some(P::Int64Param(4)));
+        assert!(resp.outputs[1].parameters.is_empty());
     }
 }

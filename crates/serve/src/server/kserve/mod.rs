@@ -8,6 +8,9 @@ pub mod config;
 pub mod grpc;
 pub mod non_finite;
 pub mod rest;
+pub mod rest_shared_memory;
+pub mod shared_memory;
+pub mod shared_tensors;
 pub mod tensors;
 
 use std::sync::atomic::Ordering;
@@ -16,12 +19,24 @@ use super::AppState;
 use crate::service::admission::Ticket;
 use posefuse_core::error::{Error, Result};
 use posefuse_core::image_decode::RawImages;
-use tensors::{InputTensor, OutputTensor, RequestedOutput};
+use shared_tensors::SharedInput;
+use tensors::{InputTensor, OutputTensor, Placement, RequestedOutput};
 
 /// Server name in server metadata.
 pub const SERVER_NAME: &str = "posefuse";
-/// Protocol extensions served.
+/// Protocol extensions always served.
 pub const EXTENSIONS: [&str; 1] = ["binary_tensor_data"];
+/// The shared-memory extension's name, served when `--system-shared-memory` is on.
+pub const SHARED_MEMORY_EXTENSION: &str = "system_shared_memory";
+
+/// The extensions this server offers, in server metadata.
+pub fn extensions(state: &AppState) -> Vec<&'static str> {
+    let mut e = EXTENSIONS.to_vec();
+    if state.shared_memory.enabled() {
+        e.push(SHARED_MEMORY_EXTENSION);
+    }
+    e
+}
 /// Platform in model metadata: the whole pipeline, not one ONNX graph, answers.
 pub const PLATFORM: &str = "posefuse";
 
@@ -56,6 +71,8 @@ pub struct InferRequest {
     /// The request id, echoed in the response and used as the frame id.
     pub id: Option<String>,
     pub inputs: Vec<InputTensor>,
+    /// Inputs whose data lies in shared-memory regions, read when the request runs.
+    pub shared_inputs: Vec<SharedInput>,
     /// `None` or empty: every output.
     pub outputs: Option<Vec<RequestedOutput>>,
     /// Binary form for outputs that do not say (REST `binary_data_output`).
@@ -68,17 +85,23 @@ pub struct InferResponse {
     pub model_name: String,
     pub model_version: String,
     pub id: Option<String>,
-    /// Each output with whether it goes out in binary form.
-    pub outputs: Vec<(OutputTensor, bool)>,
+    /// Each output with where its data goes.
+    pub outputs: Vec<(OutputTensor, Placement)>,
 }
 
-/// Runs one inference: tensors → frame → `Predictor::answer_admitted` (with the server's
-/// deadline) → tensors, on the ticket the request was admitted with. Errors name the tensor
-/// they come from.
+/// Runs one inference: tensors (those in shared memory read first) → frame →
+/// `Predictor::answer_admitted` (with the server's deadline) → tensors (those asked for in
+/// shared memory written there), on the ticket the request was admitted with. Errors name the
+/// tensor they come from.
 pub async fn infer(state: &AppState, ticket: &Ticket, req: InferRequest) -> Result<InferResponse> {
     let (model_name, model_version) = model(state, &req.model_name, req.model_version.as_deref())?;
     tensors::check_requested(req.outputs.as_deref())?;
-    let (frame, image) = tensors::frame_from_inputs(req.inputs, req.id.clone())?;
+    let output_regions = shared_tensors::hold_output_regions(&state.shared_memory, req.outputs.as_deref())?;
+    let mut inputs = req.inputs;
+    if !req.shared_inputs.is_empty() {
+        inputs.extend(shared_tensors::read_inputs(&state.shared_memory, req.shared_inputs, state.body_limit)?);
+    }
+    let (frame, image) = tensors::frame_from_inputs(inputs, req.id.clone())?;
     let m = frame.persons.len();
     let resp = state
         .predictor
@@ -87,5 +110,6 @@ pub async fn infer(state: &AppState, ticket: &Ticket, req: InferRequest) -> Resu
         .map_err(tensors::rename_error)?;
     let all = tensors::outputs_from_response(&resp, m)?;
     let outputs = tensors::select_outputs(all, req.outputs.as_deref(), req.binary_output)?;
+    let outputs = shared_tensors::write_outputs(outputs, &output_regions)?;
     Ok(InferResponse { model_name, model_version, id: req.id, outputs })
 }

@@ -14,7 +14,9 @@ use serde_json::{json, Map, Value};
 use super::super::errors::v2_response;
 use super::super::http::bytes_rejection;
 use super::super::AppState;
-use super::tensors::{DataType, InputTensor, RequestedOutput, TensorData, TensorSpec, INPUTS, OUTPUTS};
+use super::shared_memory::ShmRef;
+use super::shared_tensors::SharedInput;
+use super::tensors::{DataType, InputTensor, Placement, RequestedOutput, TensorData, TensorSpec, INPUTS, OUTPUTS};
 use super::{InferRequest, InferResponse};
 use posefuse_core::error::{Error, Result};
 use posefuse_core::json::parse_json;
@@ -36,6 +38,7 @@ pub fn routes() -> Router<AppState> {
         .route("/v2/models/{name}/versions/{version}/ready", get(model_ready_version))
         .route("/v2/models/{name}/infer", post(infer))
         .route("/v2/models/{name}/versions/{version}/infer", post(infer_version))
+        .merge(super::rest_shared_memory::routes())
 }
 
 /// An error answered in the protocol's shape.
@@ -55,8 +58,12 @@ impl IntoResponse for V2Error {
 
 type V2Result<T> = std::result::Result<T, V2Error>;
 
-async fn server_metadata() -> Json<Value> {
-    Json(json!({ "name": super::SERVER_NAME, "version": env!("CARGO_PKG_VERSION"), "extensions": super::EXTENSIONS }))
+async fn server_metadata(State(state): State<AppState>) -> Json<Value> {
+    Json(json!({
+        "name": super::SERVER_NAME,
+        "version": env!("CARGO_PKG_VERSION"),
+        "extensions": super::extensions(&state),
+    }))
 }
 
 /// 200 while the process answers.
@@ -194,6 +201,27 @@ struct OutputJson {
     parameters: Map<String, Value>,
 }
 
+/// Where a tensor lies in shared memory, from its `shared_memory_region`,
+/// `shared_memory_byte_size` and `shared_memory_offset` parameters; `None` without a region.
+fn shm_param(params: &Map<String, Value>, tensor: &str) -> Result<Option<ShmRef>> {
+    let Some(region) = params.get("shared_memory_region") else { return Ok(None) };
+    let region =
+        region.as_str().ok_or_else(|| Error::field(tensor, "parameter `shared_memory_region` must be a string"))?;
+    let number = |key: &str| -> Result<Option<u64>> {
+        match params.get(key) {
+            None => Ok(None),
+            Some(v) => v
+                .as_u64()
+                .map(Some)
+                .ok_or_else(|| Error::field(tensor, format!("parameter `{key}` must be a non-negative integer"))),
+        }
+    };
+    let byte_size = number("shared_memory_byte_size")?.ok_or_else(|| {
+        Error::field(tensor, "parameter `shared_memory_byte_size` is required with `shared_memory_region`")
+    })?;
+    Ok(Some(ShmRef { region: region.into(), byte_size, offset: number("shared_memory_offset")?.unwrap_or(0) }))
+}
+
 fn bool_param(params: &Map<String, Value>, key: &str, field: &str) -> Result<Option<bool>> {
     match params.get(key) {
         None => Ok(None),
@@ -230,9 +258,17 @@ pub fn parse_request(headers: &HeaderMap, body: &[u8], name: String, version: Op
     };
     let r: RequestJson = parse_json(&super::non_finite::quote_non_finite(json_part))?;
     let mut inputs = Vec::with_capacity(r.inputs.len());
+    let mut shared_inputs = Vec::new();
     for input in r.inputs {
         let name = input.name;
         let dt = DataType::parse(&name, &input.datatype)?;
+        if let Some(at) = shm_param(&input.parameters, &name)? {
+            if input.data.is_some() || input.parameters.contains_key("binary_data_size") {
+                return Err(Error::field(name.as_str(), "has both shared memory and `data` or `binary_data_size`"));
+            }
+            shared_inputs.push(SharedInput { name, datatype: dt, shape: input.shape, at });
+            continue;
+        }
         let size = match input.parameters.get("binary_data_size") {
             None => None,
             Some(v) => Some(v.as_u64().and_then(|n| usize::try_from(n).ok()).ok_or_else(|| {
@@ -275,29 +311,46 @@ pub fn parse_request(headers: &HeaderMap, body: &[u8], name: String, version: Op
                         return Err(Error::field(o.name.as_str(), "the classification extension is not supported"));
                     }
                     let binary = bool_param(&o.parameters, "binary_data", &o.name)?;
-                    Ok(RequestedOutput { name: o.name, binary })
+                    let shared_memory = shm_param(&o.parameters, &o.name)?;
+                    Ok(RequestedOutput { name: o.name, binary, shared_memory })
                 })
                 .collect::<Result<Vec<_>>>()?,
         ),
     };
-    Ok(InferRequest { model_name: name, model_version: version, id: r.id, inputs, outputs, binary_output })
+    Ok(InferRequest {
+        model_name: name,
+        model_version: version,
+        id: r.id,
+        inputs,
+        shared_inputs,
+        outputs,
+        binary_output,
+    })
 }
 
 /// A response as JSON, or as JSON followed by the binary outputs when any output is binary.
 pub fn encode_response(r: InferResponse) -> Result<Response> {
     let mut binary = Vec::new();
-    let any_binary = r.outputs.iter().any(|(_, b)| *b);
+    let any_binary = r.outputs.iter().any(|(_, p)| *p == Placement::Binary);
     let outputs: Vec<Value> = r
         .outputs
         .iter()
-        .map(|(t, as_binary)| {
+        .map(|(t, placement)| {
             let mut o = json!({ "name": t.name, "datatype": t.datatype.as_str(), "shape": t.shape });
-            if *as_binary {
-                let raw = t.data.to_raw(t.datatype);
-                o["parameters"] = json!({ "binary_data_size": raw.len() });
-                binary.extend(raw);
-            } else {
-                o["data"] = t.data.to_json();
+            match placement {
+                Placement::Binary => {
+                    let raw = t.data.to_raw(t.datatype);
+                    o["parameters"] = json!({ "binary_data_size": raw.len() });
+                    binary.extend(raw);
+                }
+                Placement::Json => o["data"] = t.data.to_json(),
+                Placement::SharedMemory(at) => {
+                    o["parameters"] = json!({
+                        "shared_memory_region": at.region,
+                        "shared_memory_byte_size": at.byte_size,
+                        "shared_memory_offset": at.offset,
+                    });
+                }
             }
             o
         })
@@ -343,7 +396,7 @@ mod tests {
         assert_eq!(a.id.as_deref(), Some("r1"));
         assert_eq!(a.inputs[0].data, TensorData::F32(vec![1.0, 2.0, 3.0, 4.0, 5.0, 6.5]));
         assert!(a.inputs[1].text);
-        assert_eq!(a.outputs, Some(vec![RequestedOutput { name: "scores".into(), binary: Some(true) }]));
+        assert_eq!(a.outputs, Some(vec![RequestedOutput::named("scores", Some(true))]));
         assert!(!a.binary_output);
 
         let pts: Vec<u8> = [1.0f32, 2.0, 3.0, 4.0, 5.0, 6.5].iter().flat_map(|v| v.to_le_bytes()).collect();
@@ -375,6 +428,71 @@ mod tests {
         assert_eq!(field_of(parse(&headers, &body)), "mode");
         headers.insert(HEADER_LENGTH, HeaderValue::from(body.len() + 1));
         assert_eq!(field_of(parse(&headers, &body)), "malformed_request");
+    }
+
+    #[test]
+    fn shared_memory_parameters_place_inputs_and_outputs() {
+        let body = br#"{"inputs": [
+            {"name": "image_rgb", "shape": [2, 3, 3], "datatype": "UINT8",
+             "parameters": {"shared_memory_region": "cam", "shared_memory_byte_size": 18, "shared_memory_offset": 64}},
+            {"name": "mode", "shape": [1], "datatype": "BYTES", "data": ["lidar"]}],
+            "outputs": [{"name": "keypoints_3d",
+                         "parameters": {"shared_memory_region": "out", "shared_memory_byte_size": 156}},
+                        {"name": "mode"}]}"#;
+        let r = parse(&HeaderMap::new(), body).unwrap();
+        assert_eq!(r.inputs.len(), 1);
+        assert_eq!(
+            r.shared_inputs,
+            vec![SharedInput {
+                name: "image_rgb".into(),
+                datatype: DataType::U8,
+                shape: vec![2, 3, 3],
+                at: ShmRef { region: "cam".into(), byte_size: 18, offset: 64 },
+            }]
+        );
+        let outs = r.outputs.unwrap();
+        assert_eq!(outs[0].shared_memory, Some(ShmRef { region: "out".into(), byte_size: 156, offset: 0 }));
+        assert_eq!(outs[1].shared_memory, None);
+
+        let one = |params: &str| {
+            format!(
+                r#"{{"inputs": [{{"name": "points", "shape": [1, 3], "datatype": "FP32", "parameters": {params}}}]}}"#
+            )
+        };
+        for bad in [
+            r#"{"shared_memory_region": "r"}"#,
+            r#"{"shared_memory_region": 7, "shared_memory_byte_size": 12}"#,
+            r#"{"shared_memory_region": "r", "shared_memory_byte_size": -12}"#,
+            r#"{"shared_memory_region": "r", "shared_memory_byte_size": 12, "shared_memory_offset": "0"}"#,
+            r#"{"shared_memory_region": "r", "shared_memory_byte_size": 12, "binary_data_size": 12}"#,
+        ] {
+            assert_eq!(field_of(parse(&HeaderMap::new(), one(bad).as_bytes())), "points", "{bad}");
+        }
+    }
+
+    #[test]
+    fn outputs_in_shared_memory_name_their_region_and_carry_no_data() {
+        use super::super::tensors::OutputTensor;
+        let t =
+            |name| OutputTensor { name, datatype: DataType::I32, shape: vec![2], data: TensorData::Int(vec![1, 2]) };
+        let at = ShmRef { region: "out".into(), byte_size: 8, offset: 16 };
+        let resp = InferResponse {
+            model_name: "default".into(),
+            model_version: "1".into(),
+            id: None,
+            outputs: vec![(t("num_points"), Placement::SharedMemory(at)), (t("scores"), Placement::Json)],
+        };
+        let r = encode_response(resp).unwrap();
+        assert_eq!(r.headers()[header::CONTENT_TYPE], "application/json");
+        let body = futures::executor::block_on(axum::body::to_bytes(r.into_body(), 1 << 20)).unwrap();
+        let v: Value = serde_json::from_slice(&body).unwrap();
+        let o = &v["outputs"][0];
+        assert_eq!(o.get("data"), None);
+        assert_eq!(
+            o["parameters"],
+            json!({"shared_memory_region": "out", "shared_memory_byte_size": 8, "shared_memory_offset": 16})
+        );
+        assert_eq!(v["outputs"][1]["data"], json!([1, 2]));
     }
 
     #[test]

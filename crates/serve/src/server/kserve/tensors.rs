@@ -5,9 +5,10 @@
 
 use base64::Engine;
 
+use super::shared_memory::ShmRef;
 use crate::service::api::PoseResponse;
 use posefuse_core::error::{Error, Result};
-use posefuse_core::frame::{Box2d, Box3d, CameraCalibration, Frame, Person, Points, RequestedMode};
+use posefuse_core::frame::{Box2d, Box3d, CameraCalibration, Frame, Person, Points, RequestedMode, RgbPixels};
 use posefuse_core::keypoints::K;
 
 /// A tensor element type, by its protocol name.
@@ -97,6 +98,8 @@ pub enum TensorData {
     Bool(Vec<bool>),
     Int(Vec<i64>),
     UInt(Vec<u64>),
+    /// UINT8 elements as they are (camera pixels: not widened).
+    U8(Vec<u8>),
     F32(Vec<f32>),
     F64(Vec<f64>),
     Bytes(Vec<Vec<u8>>),
@@ -109,6 +112,7 @@ impl TensorData {
             TensorData::Bool(v) => v.len(),
             TensorData::Int(v) => v.len(),
             TensorData::UInt(v) => v.len(),
+            TensorData::U8(v) => v.len(),
             TensorData::F32(v) => v.len(),
             TensorData::F64(v) => v.len(),
             TensorData::Bytes(v) => v.len(),
@@ -146,6 +150,7 @@ impl TensorData {
                     }
                 }
             }
+            TensorData::U8(v) => out.extend_from_slice(v),
             TensorData::F32(v) => out.extend(v.iter().flat_map(|x| x.to_le_bytes())),
             TensorData::F64(v) => out.extend(v.iter().flat_map(|x| x.to_le_bytes())),
             TensorData::Bytes(v) => {
@@ -167,6 +172,7 @@ impl TensorData {
             TensorData::Bool(v) => v.iter().map(|b| Value::Bool(*b)).collect(),
             TensorData::Int(v) => v.iter().map(|x| Value::from(*x)).collect(),
             TensorData::UInt(v) => v.iter().map(|x| Value::from(*x)).collect(),
+            TensorData::U8(v) => v.iter().map(|x| Value::from(*x)).collect(),
             TensorData::F32(v) => v.iter().map(|x| num(f64::from(*x))).collect(),
             TensorData::F64(v) => v.iter().map(|x| num(*x)).collect(),
             TensorData::Bytes(v) => v.iter().map(|b| Value::String(String::from_utf8_lossy(b).into_owned())).collect(),
@@ -211,7 +217,7 @@ impl TensorData {
                 TensorData::Int(chunks.map(|c| i64::from(i32::from_le_bytes([c[0], c[1], c[2], c[3]]))).collect())
             }
             DataType::I64 => TensorData::Int(chunks.map(|c| i64::from_le_bytes(le8(c))).collect()),
-            DataType::U8 => TensorData::UInt(raw.iter().map(|b| u64::from(*b)).collect()),
+            DataType::U8 => TensorData::U8(raw.to_vec()),
             DataType::U16 => TensorData::UInt(chunks.map(|c| u64::from(u16::from_le_bytes([c[0], c[1]]))).collect()),
             DataType::U32 => {
                 TensorData::UInt(chunks.map(|c| u64::from(u32::from_le_bytes([c[0], c[1], c[2], c[3]]))).collect())
@@ -242,6 +248,15 @@ impl TensorData {
                     .iter()
                     .enumerate()
                     .map(|(i, v)| v.as_i64().ok_or_else(|| bad(i, "an integer")))
+                    .collect::<Result<_>>()?,
+            ),
+            DataType::U8 => TensorData::U8(
+                leaves
+                    .iter()
+                    .enumerate()
+                    .map(|(i, v)| {
+                        v.as_u64().and_then(|x| u8::try_from(x).ok()).ok_or_else(|| bad(i, "an integer 0..=255"))
+                    })
                     .collect::<Result<_>>()?,
             ),
             dt if dt.is_unsigned() => TensorData::UInt(
@@ -343,8 +358,9 @@ const fn spec(name: &'static str, datatype: DataType, shape: &'static [i64]) -> 
 
 /// The model's inputs (docs/KSERVE.md; `points`, the calibration, `image_size` and `boxes_3d` are
 /// required).
-pub const INPUTS: [TensorSpec; 9] = [
+pub const INPUTS: [TensorSpec; 10] = [
     spec("image", DataType::Bytes, &[1]),
+    spec("image_rgb", DataType::U8, &[-1, -1, 3]),
     spec("points", DataType::F32, &[-1, 3]),
     spec("calibration_intrinsic", DataType::F64, &[9]),
     spec("calibration_extrinsic", DataType::F64, &[16]),
@@ -408,6 +424,7 @@ fn integers(t: &InputTensor) -> Result<Vec<i128>> {
     match &t.data {
         TensorData::Int(v) => Ok(v.iter().map(|x| i128::from(*x)).collect()),
         TensorData::UInt(v) => Ok(v.iter().map(|x| i128::from(*x)).collect()),
+        TensorData::U8(v) => Ok(v.iter().map(|x| i128::from(*x)).collect()),
         _ => Err(Error::field(
             t.name.as_str(),
             format!("datatype {}, expected an integer type (INT32, INT64, UINT32, ...)", t.datatype.as_str()),
@@ -432,6 +449,24 @@ fn text_items(t: &InputTensor) -> Result<Vec<String>> {
         .collect()
 }
 
+/// `image_rgb` ([H, W, 3] UINT8) as the frame's pixels, moved rather than copied when they
+/// arrived as raw bytes. Their size is checked against `image_size` with the frame.
+fn rgb_pixels(t: InputTensor) -> Result<RgbPixels> {
+    check_shape(&t, &[&[-1, -1, 3]])?;
+    let dim =
+        |d: i64| u32::try_from(d).map_err(|_| Error::field("image_rgb", format!("shape {:?} is too large", t.shape)));
+    let (height, width) = (dim(t.shape[0])?, dim(t.shape[1])?);
+    let pixels = match t.data {
+        TensorData::U8(v) => v,
+        TensorData::UInt(v) => v
+            .into_iter()
+            .map(|x| u8::try_from(x).map_err(|_| Error::field("image_rgb", format!("element {x} is not 0..=255"))))
+            .collect::<Result<_>>()?,
+        _ => return Err(Error::field("image_rgb", format!("datatype {}, expected UINT8", t.datatype.as_str()))),
+    };
+    Ok(RgbPixels { width, height, pixels })
+}
+
 /// The request's tensors as a frame plus the raw image bytes (for `Predictor::predict`). The
 /// request `id` becomes the frame id. Errors name the tensor.
 pub fn frame_from_inputs(inputs: Vec<InputTensor>, frame_id: Option<String>) -> Result<(Frame, Option<Vec<u8>>)> {
@@ -452,7 +487,7 @@ pub fn frame_from_inputs(inputs: Vec<InputTensor>, frame_id: Option<String>) -> 
             }
         }
     }
-    let [image, points, intrinsic, extrinsic, size, boxes_3d, boxes_2d, ids, mode] = slots;
+    let [image, image_rgb, points, intrinsic, extrinsic, size, boxes_3d, boxes_2d, ids, mode] = slots;
     let missing = |name: &str| Error::field(name, "required input is missing");
 
     let image = match image {
@@ -470,6 +505,17 @@ pub fn frame_from_inputs(inputs: Vec<InputTensor>, frame_id: Option<String>) -> 
                 Some(bytes)
             }
         }
+    };
+
+    let image_rgb = match image_rgb {
+        None => None,
+        Some(t) if image.is_some() => {
+            return Err(Error::field(
+                t.name.as_str(),
+                "send either `image` (file bytes) or `image_rgb` (pixels), not both",
+            ))
+        }
+        Some(t) => Some(rgb_pixels(t)?),
     };
 
     let points = points.ok_or_else(|| missing("points"))?;
@@ -493,6 +539,14 @@ pub fn frame_from_inputs(inputs: Vec<InputTensor>, frame_id: Option<String>) -> 
             format!("[width, height] must be positive, got [{}, {}]", wh[0], wh[1]),
         ));
     };
+    if let Some(px) = &image_rgb {
+        if (px.width, px.height) != (width, height) {
+            return Err(Error::field(
+                "image_rgb",
+                format!("shape [{}, {}, 3] but image_size is [{width}, {height}]", px.height, px.width),
+            ));
+        }
+    }
     let calibration =
         CameraCalibration { intrinsic: floats(&intrinsic)?, extrinsic: floats(&extrinsic)?, width, height };
 
@@ -574,7 +628,7 @@ pub fn frame_from_inputs(inputs: Vec<InputTensor>, frame_id: Option<String>) -> 
     let frame = Frame {
         frame_id,
         image: None,
-        image_rgb: None,
+        image_rgb,
         calibration: Some(calibration),
         cameras: Vec::new(),
         points: Points::Flat(flat),
@@ -588,10 +642,12 @@ pub fn frame_from_inputs(inputs: Vec<InputTensor>, frame_id: Option<String>) -> 
 
 /// The tensor that a frame field comes from (`persons[2].box_3d.height` → `boxes_3d[2].height`).
 pub fn tensor_field(field: &str) -> String {
-    const PREFIXES: [(&str, &str); 3] = [
+    const PREFIXES: [(&str, &str); 5] = [
         ("calibration.intrinsic", "calibration_intrinsic"),
         ("calibration.extrinsic", "calibration_extrinsic"),
         ("calibration.width/height", "image_size"),
+        ("image_rgb.width/height", "image_rgb"),
+        ("image_rgb.b64", "image_rgb"),
     ];
     for (from, to) in PREFIXES {
         if let Some(rest) = field.strip_prefix(from) {
@@ -632,11 +688,40 @@ pub struct OutputTensor {
 }
 
 /// An output the client asked for, and whether it wants it in binary form (`None`: the
-/// request's default).
+/// request's default) or written to a shared-memory region.
 #[derive(Debug, Clone, PartialEq, Eq)]
 pub struct RequestedOutput {
     pub name: String,
     pub binary: Option<bool>,
+    pub shared_memory: Option<ShmRef>,
+}
+
+impl RequestedOutput {
+    /// An output asked for by name, in the form `binary` says.
+    pub fn named(name: impl Into<String>, binary: Option<bool>) -> Self {
+        RequestedOutput { name: name.into(), binary, shared_memory: None }
+    }
+}
+
+/// Where an output's data goes in the response.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub enum Placement {
+    /// JSON `data` (REST without the binary extension).
+    Json,
+    /// Raw bytes after the JSON (REST) or in `raw_output_contents` (gRPC).
+    Binary,
+    /// Written to a shared-memory region; the response names it and the bytes written.
+    SharedMemory(ShmRef),
+}
+
+impl Placement {
+    fn of(binary: bool) -> Placement {
+        if binary {
+            Placement::Binary
+        } else {
+            Placement::Json
+        }
+    }
 }
 
 /// Checks the requested outputs exist and are asked once (before any work is done).
@@ -705,14 +790,14 @@ pub fn outputs_from_response(resp: &PoseResponse, m: usize) -> Result<Vec<Output
 }
 
 /// The outputs the client asked for (all, in declared order, when it named none), each with
-/// whether it goes out in binary form.
+/// where it goes.
 pub fn select_outputs(
     all: Vec<OutputTensor>,
     requested: Option<&[RequestedOutput]>,
     binary_default: bool,
-) -> Result<Vec<(OutputTensor, bool)>> {
+) -> Result<Vec<(OutputTensor, Placement)>> {
     let Some(req) = requested.filter(|r| !r.is_empty()) else {
-        return Ok(all.into_iter().map(|t| (t, binary_default)).collect());
+        return Ok(all.into_iter().map(|t| (t, Placement::of(binary_default))).collect());
     };
     check_requested(Some(req))?;
     let mut all: Vec<Option<OutputTensor>> = all.into_iter().map(Some).collect();
@@ -722,7 +807,11 @@ pub fn select_outputs(
             let t = slot
                 .and_then(Option::take)
                 .ok_or_else(|| Error::Runtime(format!("output `{}` was not produced", r.name)))?;
-            Ok((t, r.binary.unwrap_or(binary_default)))
+            let placement = match &r.shared_memory {
+                Some(at) => Placement::SharedMemory(at.clone()),
+                None => Placement::of(r.binary.unwrap_or(binary_default)),
+            };
+            Ok((t, placement))
         })
         .collect()
 }
@@ -1004,17 +1093,69 @@ mod tests {
         let all = outputs_from_response(&response(), 3).unwrap();
         let every = select_outputs(all.clone(), None, true).unwrap();
         assert_eq!(every.len(), OUTPUTS.len());
-        assert!(every.iter().all(|(_, b)| *b));
+        assert!(every.iter().all(|(_, p)| *p == Placement::Binary));
+        let at = ShmRef { region: "out".into(), byte_size: 12, offset: 4 };
         let req = [
-            RequestedOutput { name: "mode".into(), binary: Some(false) },
-            RequestedOutput { name: "keypoints_3d".into(), binary: None },
+            RequestedOutput::named("mode", Some(false)),
+            RequestedOutput::named("keypoints_3d", None),
+            RequestedOutput { shared_memory: Some(at.clone()), ..RequestedOutput::named("num_points", Some(false)) },
         ];
-        let two = select_outputs(all.clone(), Some(&req), true).unwrap();
-        assert_eq!((two[0].0.name, two[0].1, two[1].0.name, two[1].1), ("mode", false, "keypoints_3d", true));
-        let unknown = [RequestedOutput { name: "heatmaps".into(), binary: None }];
+        let three = select_outputs(all.clone(), Some(&req), true).unwrap();
+        let got: Vec<_> = three.iter().map(|(t, p)| (t.name, p.clone())).collect();
+        assert_eq!(
+            got,
+            [
+                ("mode", Placement::Json),
+                ("keypoints_3d", Placement::Binary),
+                ("num_points", Placement::SharedMemory(at))
+            ]
+        );
+        let unknown = [RequestedOutput::named("heatmaps", None)];
         assert_eq!(field_of(check_requested(Some(&unknown))), "heatmaps");
         let twice = [req[0].clone(), req[0].clone()];
         assert_eq!(field_of(select_outputs(all, Some(&twice), false)), "mode");
+    }
+
+    #[test]
+    fn image_rgb_pixels_become_the_frames_pixels() {
+        let px: Vec<u8> = (0..2 * 3 * 3).map(|v| v as u8).collect();
+        let raw = TensorData::from_raw("image_rgb", DataType::U8, &px).unwrap();
+        assert_eq!(raw, TensorData::U8(px.clone()), "UINT8 stays one byte per element");
+        let json = TensorData::from_json("image_rgb", DataType::U8, &serde_json::json!(px)).unwrap();
+        assert_eq!(json, raw);
+        assert_eq!(json.to_raw(DataType::U8), px);
+        assert_eq!(field_of(TensorData::from_json("image_rgb", DataType::U8, &serde_json::json!([256]))), "image_rgb");
+        let rgb = |shape: &[i64], data: TensorData| {
+            InputTensor::new("image_rgb".into(), DataType::U8, shape.to_vec(), data, false).unwrap()
+        };
+        let small = |inputs| replace(inputs, t("image_size", DataType::I32, &[2], TensorData::Int(vec![3, 2])));
+        let (f, image) = frame_from_inputs(small(replace(valid(), rgb(&[2, 3, 3], raw))), None).unwrap();
+        assert_eq!(image, None);
+        assert_eq!(f.image_rgb, Some(RgbPixels { width: 3, height: 2, pixels: px.clone() }));
+        // Widened integers (gRPC's uint_contents of another type, JSON UINT16) are narrowed, checked.
+        let wide = TensorData::UInt(px.iter().map(|v| u64::from(*v)).collect());
+        let (f, _) = frame_from_inputs(small(replace(valid(), rgb(&[2, 3, 3], wide))), None).unwrap();
+        assert_eq!(f.image_rgb.map(|p| p.pixels), Some(px.clone()));
+        let over = TensorData::UInt(vec![300; 18]);
+        assert_eq!(field_of(frame_from_inputs(small(replace(valid(), rgb(&[2, 3, 3], over))), None)), "image_rgb");
+        assert_eq!(
+            field_of(frame_from_inputs(small(replace(valid(), rgb(&[3, 2, 3], TensorData::U8(px.clone())))), None))
+                .as_str(),
+            "image_rgb"
+        );
+        assert_eq!(
+            field_of(frame_from_inputs(small(replace(valid(), rgb(&[6, 3], TensorData::U8(px.clone())))), None)),
+            "image_rgb"
+        );
+        let floats =
+            InputTensor::new("image_rgb".into(), DataType::F32, vec![2, 3, 3], TensorData::F32(vec![0.0; 18]), false)
+                .unwrap();
+        assert_eq!(field_of(frame_from_inputs(small(replace(valid(), floats)), None)), "image_rgb");
+        let mut both = small(replace(valid(), rgb(&[2, 3, 3], TensorData::U8(px))));
+        both.push(t("image", DataType::Bytes, &[1], TensorData::Bytes(vec![vec![0xFF, 0xD8]])));
+        assert_eq!(field_of(frame_from_inputs(both, None)), "image_rgb");
+        assert_eq!(tensor_field("image_rgb.width/height"), "image_rgb");
+        assert_eq!(tensor_field("image_rgb.b64"), "image_rgb");
     }
 
     #[test]

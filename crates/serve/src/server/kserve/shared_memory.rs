@@ -1,0 +1,421 @@
+//! KServe's system shared-memory extension (docs/KSERVE.md, "System shared memory"): a client on
+//! the same host registers a POSIX shared-memory object (its `shm_open` key, e.g. `/cam0`) as a
+//! named region, then names a region, offset and size in an input's or output's parameters
+//! instead of sending the bytes through the socket. [`SystemSharedMemory`] is the one owner of
+//! the registered regions; it is off unless the server is started with `--system-shared-memory`,
+//! since a registration makes the server read and write an object the client names.
+//!
+//! Why positioned reads and writes (`pread`/`pwrite`) and not a mapping: the client owns the
+//! object and may write it, shrink it or unlink it while it is registered. Reading through a
+//! mapping that another process writes is a data race in Rust's memory model, and touching a
+//! mapped page past the end of a shrunk object is a SIGBUS that kills the server. A positioned
+//! read copies exactly the bytes a tensor names, once (the copy a mapped crop would cost too),
+//! and a shrunk object becomes a 400 naming the tensor. The object is opened at registration and
+//! held until unregistration, so an unlinked key stays readable, and a request that resolved its
+//! regions keeps them open until it answers (unregistering a region in use is safe).
+
+use std::collections::BTreeMap;
+use std::fs::{File, OpenOptions};
+use std::os::unix::fs::{FileExt, OpenOptionsExt};
+use std::path::PathBuf;
+use std::sync::{Arc, Mutex, MutexGuard};
+
+use posefuse_core::error::{Error, Result};
+
+/// Where POSIX shared-memory objects live on Linux (`shm_open("/k")` is `/dev/shm/k`).
+pub const SHM_DIR: &str = "/dev/shm";
+/// Default for `--shared-memory-regions`.
+pub const MAX_REGIONS: usize = 64;
+
+/// How the extension is configured at start-up.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct SharedMemoryConfig {
+    /// Whether clients may register regions at all.
+    pub enabled: bool,
+    /// The directory keys are confined to.
+    pub dir: PathBuf,
+    /// Regions registered at once.
+    pub max_regions: usize,
+}
+
+impl Default for SharedMemoryConfig {
+    fn default() -> Self {
+        SharedMemoryConfig { enabled: false, dir: PathBuf::from(SHM_DIR), max_regions: MAX_REGIONS }
+    }
+}
+
+/// A registered region as status reports it.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct RegionStatus {
+    pub name: String,
+    pub key: String,
+    pub offset: u64,
+    pub byte_size: u64,
+}
+
+/// One registered region: `byte_size` bytes from `offset` of the object `key`.
+#[derive(Debug)]
+pub struct Region {
+    status: RegionStatus,
+    file: File,
+    writable: bool,
+}
+
+/// Where a tensor lies in a region: the `shared_memory_region`, `shared_memory_byte_size` and
+/// `shared_memory_offset` parameters of an input or a requested output.
+#[derive(Debug, Clone, PartialEq, Eq)]
+pub struct ShmRef {
+    pub region: String,
+    pub byte_size: u64,
+    pub offset: u64,
+}
+
+/// The registered regions.
+#[derive(Debug, Default)]
+pub struct SystemSharedMemory {
+    config: SharedMemoryConfig,
+    regions: Mutex<BTreeMap<String, Arc<Region>>>,
+}
+
+impl SystemSharedMemory {
+    pub fn new(config: SharedMemoryConfig) -> Self {
+        SystemSharedMemory { config, regions: Mutex::new(BTreeMap::new()) }
+    }
+
+    /// Whether clients may register regions.
+    pub fn enabled(&self) -> bool {
+        self.config.enabled
+    }
+
+    fn check_enabled(&self) -> Result<()> {
+        if self.config.enabled {
+            Ok(())
+        } else {
+            Err(Error::Forbidden(
+                "system shared memory is off; start the server with --system-shared-memory (docs/KSERVE.md)".into(),
+            ))
+        }
+    }
+
+    fn regions(&self) -> MutexGuard<'_, BTreeMap<String, Arc<Region>>> {
+        // A panic while holding the lock leaves the map itself whole, so its contents stay usable.
+        self.regions.lock().unwrap_or_else(|e| e.into_inner())
+    }
+
+    /// Registers `byte_size` bytes from `offset` of the object `key` as region `name`. The
+    /// object is opened now (read-write when allowed) and must already hold the whole region.
+    pub fn register(&self, name: &str, key: &str, offset: u64, byte_size: u64) -> Result<()> {
+        self.check_enabled()?;
+        if name.is_empty() {
+            return Err(Error::field("name", "a region needs a name"));
+        }
+        if byte_size == 0 {
+            return Err(Error::field("byte_size", "must be positive"));
+        }
+        let end =
+            offset.checked_add(byte_size).ok_or_else(|| Error::field("offset", "offset + byte_size overflows"))?;
+        let path = self.config.dir.join(object_name(key)?);
+        if self.regions().contains_key(name) {
+            return Err(Error::field("name", format!("region `{name}` is already registered; unregister it first")));
+        }
+        let (file, writable) = open_object(&path, key)?;
+        let len = file.metadata().map_err(|e| Error::field("key", format!("`{key}`: {e}")))?.len();
+        if end > len {
+            return Err(Error::field(
+                "byte_size",
+                format!("offset {offset} + byte_size {byte_size} runs past the end of `{key}` ({len} bytes)"),
+            ));
+        }
+        let region =
+            Region { status: RegionStatus { name: name.into(), key: key.into(), offset, byte_size }, file, writable };
+        let mut regions = self.regions();
+        if regions.contains_key(name) {
+            return Err(Error::field("name", format!("region `{name}` is already registered; unregister it first")));
+        }
+        if regions.len() >= self.config.max_regions {
+            return Err(Error::field(
+                "name",
+                format!(
+                    "{} regions are registered, the most --shared-memory-regions allows; unregister one first",
+                    regions.len()
+                ),
+            ));
+        }
+        regions.insert(name.into(), Arc::new(region));
+        Ok(())
+    }
+
+    /// Unregisters region `name`, or every region when `name` is empty. A name that is not
+    /// registered is not an error (as Triton). Requests that already hold the region finish.
+    pub fn unregister(&self, name: &str) -> Result<()> {
+        self.check_enabled()?;
+        let mut regions = self.regions();
+        if name.is_empty() {
+            regions.clear();
+        } else {
+            regions.remove(name);
+        }
+        Ok(())
+    }
+
+    /// The status of region `name`, or of every region when `name` is empty.
+    pub fn status(&self, name: &str) -> Result<Vec<RegionStatus>> {
+        self.check_enabled()?;
+        let regions = self.regions();
+        if name.is_empty() {
+            return Ok(regions.values().map(|r| r.status.clone()).collect());
+        }
+        regions
+            .get(name)
+            .map(|r| vec![r.status.clone()])
+            .ok_or_else(|| Error::NotFound(format!("system shared memory region `{name}` is not registered")))
+    }
+
+    /// The region a tensor names, held for the request (`tensor` names it in errors).
+    pub fn region(&self, tensor: &str, at: &ShmRef) -> Result<Arc<Region>> {
+        self.check_enabled()?;
+        self.regions()
+            .get(&at.region)
+            .cloned()
+            .ok_or_else(|| Error::field(tensor, format!("shared memory region `{}` is not registered", at.region)))
+    }
+}
+
+impl Region {
+    /// Where `at` lies in the object, checked against the region's bounds.
+    fn span(&self, tensor: &str, at: &ShmRef) -> Result<u64> {
+        let end = at.offset.checked_add(at.byte_size);
+        if end.is_none_or(|e| e > self.status.byte_size) {
+            return Err(Error::field(
+                tensor,
+                format!(
+                    "shared_memory_offset {} + shared_memory_byte_size {} runs past region `{}` ({} bytes)",
+                    at.offset, at.byte_size, self.status.name, self.status.byte_size
+                ),
+            ));
+        }
+        Ok(self.status.offset + at.offset)
+    }
+
+    /// Whether `at` lies in the region (`tensor` names it in the error).
+    pub fn check_span(&self, tensor: &str, at: &ShmRef) -> Result<()> {
+        self.span(tensor, at).map(|_| ())
+    }
+
+    /// The `at.byte_size` bytes at `at` (the caller bounds the size first).
+    pub fn read(&self, tensor: &str, at: &ShmRef) -> Result<Vec<u8>> {
+        let start = self.span(tensor, at)?;
+        let len =
+            usize::try_from(at.byte_size).map_err(|_| Error::field(tensor, "shared_memory_byte_size is too large"))?;
+        let mut buf = vec![0u8; len];
+        self.file.read_exact_at(&mut buf, start).map_err(|e| self.io_error(tensor, e))?;
+        Ok(buf)
+    }
+
+    /// Writes `bytes` at `at` (which must have room for them); never past the object's end.
+    pub fn write(&self, tensor: &str, at: &ShmRef, bytes: &[u8]) -> Result<()> {
+        let start = self.span(tensor, at)?;
+        if bytes.len() as u64 > at.byte_size {
+            return Err(Error::field(
+                tensor,
+                format!("is {} bytes but shared_memory_byte_size is {}", bytes.len(), at.byte_size),
+            ));
+        }
+        if !self.writable {
+            return Err(Error::field(
+                tensor,
+                format!(
+                    "shared memory region `{}` was registered read-only (the server may not write `{}`)",
+                    self.status.name, self.status.key
+                ),
+            ));
+        }
+        let len = self.file.metadata().map_err(|e| self.io_error(tensor, e))?.len();
+        if start + bytes.len() as u64 > len {
+            return Err(self.shrunk(tensor, len));
+        }
+        self.file.write_all_at(bytes, start).map_err(|e| self.io_error(tensor, e))
+    }
+
+    fn shrunk(&self, tensor: &str, len: u64) -> Error {
+        Error::field(
+            tensor,
+            format!(
+                "shared memory object `{}` shrank to {len} bytes after region `{}` was registered",
+                self.status.key, self.status.name
+            ),
+        )
+    }
+
+    fn io_error(&self, tensor: &str, e: std::io::Error) -> Error {
+        if e.kind() == std::io::ErrorKind::UnexpectedEof {
+            let len = self.file.metadata().map(|m| m.len()).unwrap_or(0);
+            return self.shrunk(tensor, len);
+        }
+        Error::Io(format!("shared memory region `{}`: {e}", self.status.name))
+    }
+}
+
+/// The object's file name for a `shm_open` key: `/name` (or `name`), one path component of
+/// letters, digits, `.`, `_` and `-`, so that a key can only name an object in the shared-memory
+/// directory.
+pub fn object_name(key: &str) -> Result<&str> {
+    let name = key.strip_prefix('/').unwrap_or(key);
+    let ok = !name.is_empty()
+        && name.len() <= 255
+        && name != "."
+        && name != ".."
+        && name.bytes().all(|b| b.is_ascii_alphanumeric() || matches!(b, b'.' | b'_' | b'-'));
+    if ok {
+        Ok(name)
+    } else {
+        Err(Error::field(
+            "key",
+            format!("`{key}` is not a shared memory key: expected `/name`, the name letters, digits, `.`, `_` or `-`"),
+        ))
+    }
+}
+
+/// Opens the object read-write, else read-only; never through a symbolic link, and only a
+/// regular file.
+fn open_object(path: &std::path::Path, key: &str) -> Result<(File, bool)> {
+    let open = |write: bool| OpenOptions::new().read(true).write(write).custom_flags(libc::O_NOFOLLOW).open(path);
+    let (file, writable) = match open(true) {
+        Ok(f) => (f, true),
+        Err(e) if e.kind() == std::io::ErrorKind::PermissionDenied => {
+            (open(false).map_err(|e| open_error(key, &e))?, false)
+        }
+        Err(e) => return Err(open_error(key, &e)),
+    };
+    let meta = file.metadata().map_err(|e| open_error(key, &e))?;
+    if !meta.is_file() {
+        return Err(Error::field("key", format!("`{key}` is not a shared memory object")));
+    }
+    Ok((file, writable))
+}
+
+fn open_error(key: &str, e: &std::io::Error) -> Error {
+    match e.kind() {
+        std::io::ErrorKind::NotFound => {
+            Error::field("key", format!("no shared memory object `{key}`: create it (shm_open) before registering"))
+        }
+        _ => Error::field("key", format!("`{key}` cannot be opened: {e}")),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn memory(dir: &std::path::Path) -> SystemSharedMemory {
+        SystemSharedMemory::new(SharedMemoryConfig { enabled: true, dir: dir.into(), max_regions: 2 })
+    }
+
+    fn at(region: &str, offset: u64, byte_size: u64) -> ShmRef {
+        ShmRef { region: region.into(), byte_size, offset }
+    }
+
+    fn field_of<T: std::fmt::Debug>(r: Result<T>) -> String {
+        match r {
+            Err(e) => e.field_name().unwrap_or(e.code()).to_string(),
+            Ok(v) => panic!("succeeded: {v:?}"),
+        }
+    }
+
+    #[test]
+    fn keys_name_one_object_in_the_directory() {
+        assert_eq!(object_name("/cam0").unwrap(), "cam0");
+        assert_eq!(object_name("psm_1a2b.x-y").unwrap(), "psm_1a2b.x-y");
+        for bad in ["", "/", "/..", "..", ".", "/a/b", "../etc/passwd", "/a b", "/a\0"] {
+            assert!(object_name(bad).is_err(), "{bad:?}");
+        }
+        assert!(object_name(&"a".repeat(256)).is_err());
+    }
+
+    #[test]
+    fn a_region_reads_and_writes_within_its_bounds() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("obj"), (0u8..32).collect::<Vec<_>>()).unwrap();
+        let m = memory(dir.path());
+        m.register("r", "/obj", 8, 16).unwrap();
+        let r = m.region("points", &at("r", 0, 4)).unwrap();
+        assert_eq!(r.read("points", &at("r", 0, 4)).unwrap(), vec![8, 9, 10, 11]);
+        assert_eq!(r.read("points", &at("r", 12, 4)).unwrap(), vec![20, 21, 22, 23]);
+        assert_eq!(field_of(r.read("points", &at("r", 12, 5))), "points");
+        assert_eq!(field_of(r.read("points", &at("r", u64::MAX, 2))), "points");
+        r.write("scores", &at("r", 2, 3), &[7, 7]).unwrap();
+        assert_eq!(std::fs::read(dir.path().join("obj")).unwrap()[8..14], [8, 9, 7, 7, 12, 13]);
+        assert_eq!(field_of(r.write("scores", &at("r", 0, 1), &[1, 2])), "scores");
+        assert_eq!(field_of(r.write("scores", &at("r", 15, 2), &[1])), "scores");
+        assert_eq!(
+            m.status("").unwrap(),
+            vec![RegionStatus { name: "r".into(), key: "/obj".into(), offset: 8, byte_size: 16 }]
+        );
+    }
+
+    #[test]
+    fn registration_is_checked_and_bounded() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("obj"), [0u8; 16]).unwrap();
+        std::os::unix::fs::symlink(dir.path().join("obj"), dir.path().join("link")).unwrap();
+        std::fs::create_dir(dir.path().join("sub")).unwrap();
+        let m = memory(dir.path());
+        assert_eq!(field_of(m.register("r", "/missing", 0, 4)), "key");
+        assert_eq!(field_of(m.register("r", "/link", 0, 4)), "key", "a symbolic link is not followed");
+        assert_eq!(field_of(m.register("r", "/sub", 0, 4)), "key");
+        assert_eq!(field_of(m.register("r", "/../obj", 0, 4)), "key");
+        assert_eq!(field_of(m.register("r", "/obj", 8, 9)), "byte_size");
+        assert_eq!(field_of(m.register("r", "/obj", 0, 0)), "byte_size");
+        assert_eq!(field_of(m.register("", "/obj", 0, 4)), "name");
+        m.register("a", "/obj", 0, 16).unwrap();
+        assert_eq!(field_of(m.register("a", "/obj", 0, 4)), "name", "registered twice");
+        m.register("b", "/obj", 8, 8).unwrap();
+        assert_eq!(field_of(m.register("c", "/obj", 0, 4)), "name", "over max_regions");
+        assert_eq!(field_of(m.status("c")), "not_found");
+        m.unregister("c").unwrap();
+        m.unregister("a").unwrap();
+        m.register("c", "/obj", 0, 4).unwrap();
+        m.unregister("").unwrap();
+        assert!(m.status("").unwrap().is_empty());
+    }
+
+    #[test]
+    fn a_held_region_outlives_unregistration_and_unlinking() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("obj");
+        std::fs::write(&path, [5u8; 8]).unwrap();
+        let m = memory(dir.path());
+        m.register("r", "/obj", 0, 8).unwrap();
+        let held = m.region("image_rgb", &at("r", 0, 8)).unwrap();
+        m.unregister("r").unwrap();
+        std::fs::remove_file(&path).unwrap();
+        assert_eq!(held.read("image_rgb", &at("r", 0, 8)).unwrap(), vec![5; 8]);
+        assert_eq!(field_of(m.region("image_rgb", &at("r", 0, 8))), "image_rgb");
+    }
+
+    #[test]
+    fn a_shrunk_object_is_an_error_naming_the_tensor() {
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("obj");
+        std::fs::write(&path, [1u8; 64]).unwrap();
+        let m = memory(dir.path());
+        m.register("r", "/obj", 0, 64).unwrap();
+        let r = m.region("points", &at("r", 0, 64)).unwrap();
+        File::options().write(true).open(&path).unwrap().set_len(10).unwrap();
+        let e = r.read("points", &at("r", 0, 64)).unwrap_err();
+        assert_eq!(e.field_name(), Some("points"));
+        assert!(e.to_string().contains("shrank to 10 bytes"), "{e}");
+        assert_eq!(field_of(r.write("scores", &at("r", 8, 8), &[0; 8])), "scores");
+        assert_eq!(std::fs::metadata(&path).unwrap().len(), 10, "a write never grows the object");
+    }
+
+    #[test]
+    fn everything_is_refused_while_off() {
+        let m = SystemSharedMemory::new(SharedMemoryConfig::default());
+        assert!(!m.enabled());
+        assert_eq!(field_of(m.register("r", "/obj", 0, 4)), "forbidden");
+        assert_eq!(field_of(m.status("")), "forbidden");
+        assert_eq!(field_of(m.unregister("")), "forbidden");
+        assert_eq!(field_of(m.region("points", &at("r", 0, 4))), "forbidden");
+    }
+}

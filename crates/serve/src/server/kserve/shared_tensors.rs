@@ -1,0 +1,162 @@
+//! A request's tensors that lie in system shared memory (`shared_memory`): inputs read before
+//! the frame is built, output regions held before inference runs and written after it. The
+//! transports parse the `shared_memory_*` parameters into [`ShmRef`]s; this is the one place
+//! that reads and writes the regions for a request.
+
+use std::sync::Arc;
+
+use super::shared_memory::{Region, ShmRef, SystemSharedMemory};
+use super::tensors::{DataType, InputTensor, OutputTensor, Placement, RequestedOutput, TensorData};
+use posefuse_core::error::{Error, Result};
+
+/// An input whose data lies in a shared-memory region.
+#[derive(Debug, Clone, PartialEq)]
+pub struct SharedInput {
+    pub name: String,
+    pub datatype: DataType,
+    pub shape: Vec<i64>,
+    pub at: ShmRef,
+}
+
+/// The inputs in shared memory as tensors. Their sizes together are bounded by `limit` (the
+/// body limit: a region is read into memory as a body would be) before any byte is read.
+pub fn read_inputs(shm: &SystemSharedMemory, shared: Vec<SharedInput>, limit: usize) -> Result<Vec<InputTensor>> {
+    let total = shared.iter().fold(0u64, |n, s| n.saturating_add(s.at.byte_size));
+    if total > limit as u64 {
+        return Err(Error::PayloadTooLarge { limit });
+    }
+    let regions = shared.iter().map(|s| shm.region(&s.name, &s.at)).collect::<Result<Vec<_>>>()?;
+    shared
+        .into_iter()
+        .zip(regions)
+        .map(|(s, region)| {
+            let raw = region.read(&s.name, &s.at)?;
+            let data = match s.datatype {
+                // Pixels move into the frame as read (no second copy).
+                DataType::U8 => TensorData::U8(raw),
+                dt => TensorData::from_raw(&s.name, dt, &raw)?,
+            };
+            InputTensor::new(s.name, s.datatype, s.shape, data, false)
+        })
+        .collect()
+}
+
+/// The regions a request's outputs go to, held from before inference until they are written, so
+/// that unregistering one meanwhile does not lose the answer.
+#[derive(Debug, Default)]
+pub struct OutputRegions(Vec<(String, Arc<Region>)>);
+
+/// Holds the region of each requested output placed in shared memory, checking that it is
+/// registered and that the requested span lies in it.
+pub fn hold_output_regions(shm: &SystemSharedMemory, requested: Option<&[RequestedOutput]>) -> Result<OutputRegions> {
+    let mut held = Vec::new();
+    for r in requested.unwrap_or_default() {
+        if let Some(at) = &r.shared_memory {
+            let region = shm.region(&r.name, at)?;
+            region.check_span(&r.name, at)?;
+            held.push((r.name.clone(), region));
+        }
+    }
+    Ok(OutputRegions(held))
+}
+
+/// Writes the outputs placed in shared memory to their held regions; each one's placement then
+/// says how many bytes were written (`shared_memory_byte_size` in the response).
+pub fn write_outputs(
+    outputs: Vec<(OutputTensor, Placement)>,
+    regions: &OutputRegions,
+) -> Result<Vec<(OutputTensor, Placement)>> {
+    outputs
+        .into_iter()
+        .map(|(t, placement)| {
+            let Placement::SharedMemory(at) = placement else { return Ok((t, placement)) };
+            let region =
+                regions.0.iter().find(|(name, _)| name == t.name).map(|(_, r)| r).ok_or_else(|| {
+                    Error::Runtime(format!("output `{}`: its shared memory region was not held", t.name))
+                })?;
+            let raw = t.data.to_raw(t.datatype);
+            region.write(t.name, &at, &raw)?;
+            let written = ShmRef { byte_size: raw.len() as u64, ..at };
+            Ok((t, Placement::SharedMemory(written)))
+        })
+        .collect()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::server::kserve::shared_memory::SharedMemoryConfig;
+
+    fn memory(dir: &std::path::Path) -> SystemSharedMemory {
+        let m = SystemSharedMemory::new(SharedMemoryConfig { enabled: true, dir: dir.into(), max_regions: 4 });
+        let mut bytes = vec![9u8; 6];
+        bytes.extend([1.5f32, -2.0, 3.25].iter().flat_map(|v| v.to_le_bytes()));
+        bytes.extend([0u8; 16]);
+        std::fs::write(dir.join("obj"), &bytes).unwrap();
+        m.register("in", "/obj", 0, 18).unwrap();
+        m.register("out", "/obj", 18, 16).unwrap();
+        m
+    }
+
+    fn input(name: &str, datatype: DataType, shape: &[i64], offset: u64, byte_size: u64) -> SharedInput {
+        SharedInput {
+            name: name.into(),
+            datatype,
+            shape: shape.to_vec(),
+            at: ShmRef { region: "in".into(), byte_size, offset },
+        }
+    }
+
+    #[test]
+    fn inputs_are_read_decoded_and_bounded_before_reading() {
+        let dir = tempfile::tempdir().unwrap();
+        let m = memory(dir.path());
+        let shared =
+            vec![input("image_rgb", DataType::U8, &[1, 2, 3], 0, 6), input("points", DataType::F32, &[1, 3], 6, 12)];
+        let got = read_inputs(&m, shared.clone(), 18).unwrap();
+        assert_eq!(got[0].data, TensorData::U8(vec![9; 6]));
+        assert_eq!(got[1].data, TensorData::F32(vec![1.5, -2.0, 3.25]));
+        assert!(matches!(read_inputs(&m, shared, 17), Err(Error::PayloadTooLarge { limit: 17 })));
+        let e = read_inputs(&m, vec![input("points", DataType::F32, &[2, 3], 6, 12)], 64).unwrap_err();
+        assert_eq!(e.field_name(), Some("points"), "shape and bytes disagree");
+        let mut gone = input("points", DataType::F32, &[1, 3], 6, 12);
+        gone.at.region = "nope".into();
+        assert_eq!(read_inputs(&m, vec![gone], 64).unwrap_err().field_name(), Some("points"));
+    }
+
+    #[test]
+    fn outputs_are_written_to_held_regions_with_the_bytes_written() {
+        let dir = tempfile::tempdir().unwrap();
+        let m = memory(dir.path());
+        let at = ShmRef { region: "out".into(), byte_size: 12, offset: 4 };
+        let requested =
+            [RequestedOutput { shared_memory: Some(at.clone()), ..RequestedOutput::named("num_points", None) }];
+        let held = hold_output_regions(&m, Some(&requested)).unwrap();
+        m.unregister("out").unwrap();
+        let t = OutputTensor {
+            name: "num_points",
+            datatype: DataType::I32,
+            shape: vec![2],
+            data: TensorData::Int(vec![5, -1]),
+        };
+        let other = OutputTensor { name: "scores", ..t.clone() };
+        let out =
+            write_outputs(vec![(t.clone(), Placement::SharedMemory(at)), (other, Placement::Json)], &held).unwrap();
+        assert_eq!(out[0].1, Placement::SharedMemory(ShmRef { region: "out".into(), byte_size: 8, offset: 4 }));
+        assert_eq!(out[1].1, Placement::Json);
+        let bytes = std::fs::read(dir.path().join("obj")).unwrap();
+        assert_eq!(&bytes[22..30], &[5, 0, 0, 0, 255, 255, 255, 255]);
+
+        m.register("out", "/obj", 18, 16).unwrap();
+        let tight = ShmRef { region: "out".into(), byte_size: 4, offset: 0 };
+        let requested =
+            [RequestedOutput { shared_memory: Some(tight.clone()), ..RequestedOutput::named("num_points", None) }];
+        let held = hold_output_regions(&m, Some(&requested)).unwrap();
+        let e = write_outputs(vec![(t, Placement::SharedMemory(tight))], &held).unwrap_err();
+        assert_eq!(e.field_name(), Some("num_points"), "8 bytes do not fit in 4");
+        let outside = ShmRef { region: "out".into(), byte_size: 8, offset: 12 };
+        let requested =
+            [RequestedOutput { shared_memory: Some(outside), ..RequestedOutput::named("num_points", None) }];
+        assert_eq!(hold_output_regions(&m, Some(&requested)).unwrap_err().field_name(), Some("num_points"));
+    }
+}
