@@ -16,10 +16,15 @@ fn the_bench_loads_a_server_with_every_image_form() {
     let frames = vec![fusion_frame(), three_mode_frame()];
     std::fs::write(data.path().join("requests/frames.json"), serde_json::to_vec(&frames).unwrap()).unwrap();
     let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
-    let server = rt.block_on(start(config()));
-    let forms = [ImageForm::AsIs, ImageForm::Jpeg420, ImageForm::Jpeg444, ImageForm::Rgb];
+    let mut shm_on = config();
+    shm_on.shared_memory.enabled = true;
+    let server = rt.block_on(start(shm_on));
+    let forms = [ImageForm::AsIs, ImageForm::Jpeg420, ImageForm::Jpeg444, ImageForm::Rgb, ImageForm::RgbShm];
     let persons_per_frame: Vec<usize> = frames.iter().map(|f| f.persons.len()).collect();
     for protocol in [Protocol::Http, Protocol::Grpc] {
+        // Shared memory travels in Open Inference Protocol requests over HTTP only.
+        let forms: Vec<ImageForm> =
+            forms.iter().copied().filter(|f| protocol == Protocol::Http || *f != ImageForm::RgbShm).collect();
         let load = LoadOptions {
             url: Some(server.url("")),
             server_pid: Some(std::process::id()),
@@ -34,7 +39,7 @@ fn the_bench_loads_a_server_with_every_image_form() {
         };
         let args =
             BenchOptions { load, model_dir: model_dir(), runtime: RuntimeConfig::DEFAULT, serve_args: Vec::new() };
-        let report = run_bench(args).unwrap();
+        let report = run_bench(args.clone()).unwrap();
         assert!(report.raw_frame_p50.is_some_and(|p| p > Duration::ZERO), "{report:?}");
         assert!(report.raw_persons_per_s.is_some_and(|p| p > 0.0), "{report:?}");
         let steps: Vec<(ImageForm, usize)> = report.steps.iter().map(|s| (s.form, s.clients)).collect();
@@ -50,6 +55,27 @@ fn the_bench_loads_a_server_with_every_image_form() {
             assert!(s.persons >= lo * s.answered && s.persons <= hi * s.answered, "{what}: {} persons", s.persons);
             assert!(s.frames_per_s > 0.0 && s.p50 > Duration::ZERO && s.p50 <= s.p99, "{what}: {s:?}");
         }
+        if protocol == Protocol::Grpc {
+            let mut shm_grpc = args;
+            shm_grpc.load.image = vec![ImageForm::RgbShm];
+            let e = run_bench(shm_grpc).unwrap_err();
+            assert!(e.to_string().contains("--protocol http"), "{e}");
+        }
     }
+    // The shared-memory form left no region registered and no object behind.
+    let status: serde_json::Value =
+        rt.block_on(async { reqwest::get(server.url("/v2/systemsharedmemory/status")).await?.json().await }).unwrap();
+    assert_eq!(status, serde_json::json!([]));
+    let left = std::fs::read_dir("/dev/shm")
+        .unwrap()
+        .filter(|e| {
+            e.as_ref()
+                .unwrap()
+                .file_name()
+                .to_string_lossy()
+                .starts_with(&format!("posefuse-bench-{}-", std::process::id()))
+        })
+        .count();
+    assert_eq!(left, 0);
     rt.block_on(server.shutdown()).unwrap();
 }

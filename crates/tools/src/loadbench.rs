@@ -8,6 +8,8 @@
 //! per frame (its persons in one batch, one thread) and for throughput (batches of `max_batch`
 //! on `workers` threads, each session with `intra_threads`), i.e. the server's thread settings.
 
+mod shared_memory;
+
 use std::path::PathBuf;
 use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
@@ -38,6 +40,9 @@ pub enum ImageForm {
     Jpeg444,
     /// Decoded RGB8 pixels (`image_rgb`).
     Rgb,
+    /// Decoded RGB8 pixels and the LiDAR points in POSIX shared memory, written once per fixture
+    /// and named by an Open Inference Protocol request (`POST /v2/models/NAME/infer`; HTTP only).
+    RgbShm,
 }
 
 /// Transport of the requests.
@@ -109,6 +114,8 @@ pub struct BenchOptions {
 
 /// One fixture prepared for sending.
 struct Prepared {
+    /// The HTTP route: `/v1/poses`, or the Open Inference Protocol's infer route.
+    http_path: String,
     http_body: Vec<u8>,
     grpc: proto::PredictRequest,
     persons: usize,
@@ -137,7 +144,14 @@ fn encode_jpeg(img: &image::RgbImage, sampling: jpeg_encoder::SamplingFactor) ->
 }
 
 /// The frame as sent in `form`: the JSON frame (with `image` or `image_rgb`) and its gRPC twin.
-fn prepare(frame: &Frame, form: ImageForm) -> posefuse_data::error::Result<Prepared> {
+/// Prepares fixture `index` for `form`; `objects` and `model` serve the shared-memory form.
+fn prepare(
+    index: usize,
+    frame: &Frame,
+    form: ImageForm,
+    objects: &mut shared_memory::Objects,
+    model: &str,
+) -> posefuse_data::error::Result<Prepared> {
     let mut f = frame.clone();
     for p in &mut f.persons {
         p.ground_truth = None;
@@ -155,13 +169,20 @@ fn prepare(frame: &Frame, form: ImageForm) -> posefuse_data::error::Result<Prepa
             let img = fixture_image(&f)?;
             (Vec::new(), Some(RgbPixels { width: img.width(), height: img.height(), pixels: img.into_raw() }))
         }
+        ImageForm::RgbShm => {
+            let img = fixture_image(&f)?;
+            let http_body = shared_memory::write_frame(objects, model, index, &f, img.as_raw())?;
+            let grpc = posefuse_serve::server::grpc::frame_to_proto(&f, Vec::new())?;
+            let http_path = format!("/v2/models/{model}/infer");
+            return Ok(Prepared { http_path, http_body, grpc, persons: f.persons.len() });
+        }
     };
     f.image = (!image.is_empty()).then(|| b64(&image));
     f.image_rgb = pixels;
     let http_body = serde_json::to_vec(&f)?;
     // the image as file bytes (the pixels travel in `f.image_rgb`)
     let grpc = posefuse_serve::server::grpc::frame_to_proto(&f, image)?;
-    Ok(Prepared { http_body, grpc, persons: f.persons.len() })
+    Ok(Prepared { http_path: "/v1/poses".into(), http_body, grpc, persons: f.persons.len() })
 }
 
 /// Resident memory of a process, from `/proc/PID/status` (kB lines `VmRSS`, `VmHWM`).
@@ -241,7 +262,7 @@ async fn send(
     match protocol {
         Protocol::Http => {
             let req = http
-                .post(format!("{url}/v1/poses"))
+                .post(format!("{url}{}", p.http_path))
                 .header("content-type", "application/json")
                 .body(p.http_body.clone())
                 .timeout(timeout);
@@ -485,6 +506,13 @@ fn spawn_server(args: &BenchOptions) -> posefuse_data::error::Result<Spawned> {
         .args(["--device", &r.device.to_string()])
         .args(r.precision.iter().flat_map(|p| ["--precision".to_string(), p.to_string()]))
         .args(&args.serve_args)
+        .args(if args.load.image.contains(&ImageForm::RgbShm) {
+            // one region per fixture
+            let regions = args.load.frames.max(posefuse_serve::server::kserve::shared_memory::MAX_REGIONS);
+            vec!["--system-shared-memory".to_string(), "--shared-memory-regions".to_string(), regions.to_string()]
+        } else {
+            Vec::new()
+        })
         .stdout(Stdio::null())
         .stderr(Stdio::null());
     if let Some(lib) = &r.ort_lib {
@@ -545,6 +573,9 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
         persons as f64 / frames.len() as f64,
         args.load.data.display()
     );
+    if args.load.image.contains(&ImageForm::RgbShm) && args.load.protocol != Protocol::Http {
+        bail!("--image rgb-shm sends Open Inference Protocol requests over HTTP: use --protocol http");
+    }
     let r = &args.runtime;
     println!(
         "runtime: bundle {} | workers {} | intra-op threads {} | max batch {} | protocol {:?} | {} s per step",
@@ -577,9 +608,17 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
     };
     println!("| image | clients | frames/s | persons/s | p50 ms | p99 ms | p50 / raw | persons/s / raw | statuses | peak RSS MB |");
     println!("|---|---|---|---|---|---|---|---|---|---|");
+    let model = Bundle::load(&args.model_dir)?.manifest.name.clone();
     for &form in &args.load.image {
-        let prepared: Vec<Prepared> =
-            frames.iter().map(|f| prepare(f, form)).collect::<posefuse_data::error::Result<_>>()?;
+        let mut objects = shared_memory::Objects::default();
+        let prepared: Vec<Prepared> = frames
+            .iter()
+            .enumerate()
+            .map(|(i, f)| prepare(i, f, form, &mut objects, &model))
+            .collect::<posefuse_data::error::Result<_>>()?;
+        if form == ImageForm::RgbShm {
+            rt.block_on(shared_memory::register(&url, &objects))?;
+        }
         let prepared = Arc::new(prepared);
         let load = Load {
             protocol: args.load.protocol,
@@ -621,6 +660,9 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
                 p99,
                 statuses: s.statuses.clone(),
             });
+        }
+        if form == ImageForm::RgbShm {
+            rt.block_on(shared_memory::unregister(&url, &objects))?;
         }
     }
     if let Some(hwm) = pid.and_then(|p| proc_kb(p, "VmHWM:")) {
