@@ -18,6 +18,8 @@ lock=models-export/requirements.lock
   echo "# trains on the CPU and on an NVIDIA GPU (docs/TRAINING.md, \"GPUs\"); its CUDA libraries are the nvidia-* pins."
   "$tmp/venv/bin/python" -m pip freeze --exclude-editable \
     | sed -E 's/^((nvidia-[^=]+|triton)==[^ ]+)$/\1 ; sys_platform == "linux" and platform_machine == "x86_64"/'
+  # pip freeze leaves setuptools out, but requirements.txt names it (tritonclient's pkg_resources).
+  "$tmp/venv/bin/python" -m pip freeze --all | grep -E '^setuptools=='
   echo 'tomli==2.2.1 ; python_version < "3.11"'
 } > "$lock"
 echo "wrote $lock ($(grep -c '==' "$lock") pins)"

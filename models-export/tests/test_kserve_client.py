@@ -78,13 +78,23 @@ def frame(tmp_path_factory) -> dict:
 @pytest.fixture(scope="module")
 def server(tmp_path_factory):
     """`posefuse serve` on a free loopback port, ready; yields its host:port."""
+    yield from _serve(tmp_path_factory, [])
+
+
+@pytest.fixture(scope="module")
+def shm_server(tmp_path_factory):
+    """As `server`, with the system shared-memory extension on."""
+    yield from _serve(tmp_path_factory, ["--system-shared-memory"])
+
+
+def _serve(tmp_path_factory, flags: list[str]):
     port = _free_port()
     env = dict(os.environ)
     env.setdefault("ORT_DYLIB_PATH", str(ROOT / ".ort" / "lib" / "libonnxruntime.so"))
     log_path = tmp_path_factory.mktemp("serve") / "serve.log"
     log = log_path.open("wb")
     proc = subprocess.Popen(
-        [str(BINARY), "serve", "--addr", f"127.0.0.1:{port}", "--model-dir", str(MODEL_DIR)],
+        [str(BINARY), "serve", "--addr", f"127.0.0.1:{port}", "--model-dir", str(MODEL_DIR), *flags],
         env=env, stdout=log, stderr=subprocess.STDOUT,
     )
     addr = f"127.0.0.1:{port}"
@@ -199,3 +209,39 @@ def test_the_tritonclient_example_gets_the_v1_keypoints_three_ways(server):
     for answer in (results[c] for c in checks[2:]):
         assert "keypoints_3d (3, 13, 3)" in answer and answer.endswith(": equal to /v1/poses"), answer
     assert run.returncode == 0 and lines[-1] == "all answers equal /v1/poses", run.stdout + run.stderr
+
+
+SHM_EXAMPLE = ROOT / "examples" / "tritonclient_shared_memory.py"
+
+
+def test_shared_memory_is_refused_unless_turned_on(server):
+    """The default server offers no shared memory: registration is 403 / PERMISSION_DENIED, and
+    server metadata does not list the extension."""
+    http = httpclient.InferenceServerClient(url=server)
+    assert "system_shared_memory" not in http.get_server_metadata()["extensions"]
+    with pytest.raises(InferenceServerException) as e:
+        http.register_system_shared_memory("r", "/posefuse-nothing", 16)
+    assert "403" in str(e.value.status()) and "--system-shared-memory" in e.value.message()
+    with pytest.raises(InferenceServerException) as e:
+        grpcclient.InferenceServerClient(url=server).get_system_shared_memory_status()
+    assert "PERMISSION_DENIED" in str(e.value.status())
+
+
+def test_the_shared_memory_example_gets_the_v1_keypoints_over_http_and_grpc(shm_server):
+    """examples/tritonclient_shared_memory.py as its docstring runs it: pixels and points in a
+    region made by tritonclient.utils.shared_memory, three outputs written by the server into
+    another, over HTTP and gRPC, each equal to /v1/poses for the same pixels; nothing is left
+    registered."""
+    run = subprocess.run(
+        [sys.executable, str(SHM_EXAMPLE), "--url", shm_server,
+         "--frame", str(ROOT / "examples" / "frame.json")],
+        capture_output=True, text=True, timeout=300, cwd=ROOT,
+    )
+    lines = run.stdout.splitlines()
+    for label in ("http", "grpc"):
+        line = next((x for x in lines if x.startswith(f"{label} shared memory: ")), "(not run)")
+        assert line.endswith("equal to /v1/poses"), run.stdout + run.stderr
+    assert run.returncode == 0 and lines[-1] == "all answers equal /v1/poses", run.stdout + run.stderr
+    http = httpclient.InferenceServerClient(url=shm_server)
+    assert "system_shared_memory" in http.get_server_metadata()["extensions"]
+    assert http.get_system_shared_memory_status() == []
