@@ -4,6 +4,7 @@ from .errors import PosefuseError
 from .grpc_client import AsyncGrpcClient, GrpcClient
 from .http_client import AsyncClient, Client
 from .images import encode_jpeg, encode_png
+from .shared_memory import SharedMemoryClient, TensorPoses
 from .types import (
     BatchResult,
     Box2d,
@@ -42,7 +43,9 @@ __all__ = [
     "PoseResponse",
     "PosefuseError",
     "RgbPixels",
+    "SharedMemoryClient",
     "SkippedPerson",
+    "TensorPoses",
     "Timings",
     "encode_jpeg",
     "encode_png",

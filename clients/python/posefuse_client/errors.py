@@ -14,6 +14,7 @@ _GRPC_MESSAGE_CODES = [
     ("request body exceeds", "payload_too_large"),
     ("server overloaded", "overloaded"),
     ("not found:", "not_found"),
+    ("forbidden:", "forbidden"),
     ("request timed out", "timeout"),
     ("not ready:", "unavailable"),
     ("model bundle:", "bundle_error"),

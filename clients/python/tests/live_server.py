@@ -92,13 +92,13 @@ def free_port() -> int:
         return s.getsockname()[1]
 
 
-def start(log_dir: Path, timeout_s: float = 60.0) -> LiveServer:
+def start(log_dir: Path, timeout_s: float = 60.0, flags: tuple[str, ...] = ()) -> LiveServer:
     env = {**os.environ, "ORT_DYLIB_PATH": os.environ.get("ORT_DYLIB_PATH", str(ROOT / ".ort/lib/libonnxruntime.so"))}
     env.setdefault("RUST_LOG", "warn")
     port = free_port()
     log = log_dir / f"posefuse-{port}.log"
     process = subprocess.Popen(
-        [str(binary()), "serve", "--addr", f"127.0.0.1:{port}", "--model-dir", str(ROOT / "models/default")],
+        [str(binary()), "serve", "--addr", f"127.0.0.1:{port}", "--model-dir", str(ROOT / "models/default"), *flags],
         env=env,
         stdout=log.open("wb"),
         stderr=subprocess.STDOUT,
