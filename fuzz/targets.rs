@@ -93,7 +93,7 @@ pub fn jpeg_decode(data: &[u8]) {
         width: w,
         height: h,
     };
-    let input = ImageInput { raw: Some(data.to_vec()), base64: None, pixels: None };
+    let input = ImageInput { raw: Some(data.to_vec()), base64: None, pixels: None, rows: None };
     let Ok(image) = open_camera(input, &calibration) else { return };
     if !matches!(image, CameraImage::Jpeg(_) | CameraImage::Png(_)) {
         return;

@@ -213,6 +213,39 @@ async fn pixels_and_points_from_shared_memory_give_the_v1_keypoints_over_rest() 
     assert_eq!(all.as_array().unwrap().len(), 1);
     assert_eq!(post(&s, "/v2/systemsharedmemory/unregister", Value::Null).await.0, 200);
     assert_eq!(get(&s, "/v2/systemsharedmemory/status").await.1, json!([]));
+
+    // Pixels alone in shared memory, points inline: the same keypoints. Pixels whose shape
+    // disagrees with image_size, or an object shrunk under its region, are 400 naming image_rgb.
+    let pixels_only = ShmObject::new("px", &rgb);
+    let register = json!({"key": pixels_only.key, "byte_size": rgb.len()});
+    assert_eq!(post(&s, "/v2/systemsharedmemory/region/px/register", register).await.0, 200);
+    let pts_f32: Vec<f32> = f.points.decode().unwrap().into_iter().flatten().collect();
+    let mut inputs = json_inputs(&f);
+    inputs.push(json!({"name": "points", "datatype": "FP32", "shape": [pts_f32.len() / 3, 3], "data": pts_f32}));
+    let image = |shape: Value| {
+        json!({"name": "image_rgb", "datatype": "UINT8", "shape": shape,
+                                      "parameters": shm_params("px", rgb.len(), 0)})
+    };
+    let with_image = |shape: Value| {
+        let mut all = inputs.clone();
+        all.push(image(shape));
+        json!({"inputs": all, "outputs": [{"name": "keypoints_3d"}]})
+    };
+    let (code, answer) = post(&s, "/v2/models/default/infer", with_image(json!([c.height, c.width, 3]))).await;
+    assert_eq!(code, 200, "{answer}");
+    let kp: Vec<f32> =
+        answer["outputs"][0]["data"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
+    assert_keypoints(&kp, &v1);
+    let (code, e) = post(&s, "/v2/models/default/infer", with_image(json!([c.width, c.height, 3]))).await;
+    assert_eq!(code, 400);
+    assert!(e["error"].as_str().unwrap().contains("`image_rgb`"), "{e}");
+    std::fs::File::options().write(true).open(&pixels_only.path).unwrap().set_len(rgb.len() as u64 / 4).unwrap();
+    let (code, e) = post(&s, "/v2/models/default/infer", with_image(json!([c.height, c.width, 3]))).await;
+    assert_eq!(code, 400);
+    assert!(
+        e["error"].as_str().unwrap().contains("`image_rgb`") && e["error"].as_str().unwrap().contains("shrank"),
+        "{e}"
+    );
     s.shutdown().await.unwrap();
 }
 

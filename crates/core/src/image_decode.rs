@@ -17,14 +17,14 @@ mod turbo;
 pub use turbo::simd as jpeg_simd;
 
 use std::io::Cursor;
-use std::sync::OnceLock;
+use std::sync::{Arc, OnceLock};
 
 use base64::Engine;
 use image::RgbImage;
 
 use crate::error::{Error, Result};
 use crate::frame::{CameraCalibration, Frame, RgbPixels};
-use crate::pipeline::{crop_rgb, plan_passes, scaled, CropTransform, DecodePlan};
+use crate::pipeline::{crop_rgb, pixel_region, plan_passes, scaled, CropTransform, DecodePlan};
 
 /// The camera image of a request, before its pixels are decoded.
 pub enum CameraImage {
@@ -38,12 +38,42 @@ pub enum CameraImage {
     Png(Vec<u8>),
     /// Decoded RGB8 pixels sent by the caller, size checked.
     Pixels(RgbImage),
+    /// Decoded RGB8 pixels read on demand, size checked: only the rows the crops need are read.
+    Rows(Arc<dyn PixelRows>),
 }
 
 impl CameraImage {
     /// Whether the camera models can run on this image (its header, at least, is sound).
     pub fn usable(&self) -> bool {
-        matches!(self, CameraImage::Jpeg(_) | CameraImage::Png(_) | CameraImage::Pixels(_))
+        matches!(self, CameraImage::Jpeg(_) | CameraImage::Png(_) | CameraImage::Pixels(_) | CameraImage::Rows(_))
+    }
+}
+
+/// Decoded RGB8 pixels that the caller reads on demand, a band of whole rows at a time: KServe's
+/// shared memory, where reading the 7 MB of a 1920×1280 frame (and faulting in the pages to hold
+/// it) costs more than the rest of the request, while its crops need a band of it.
+pub trait PixelRows: Send + Sync {
+    /// Width and height in pixels.
+    fn size(&self) -> (u32, u32);
+    /// Rows `y0..y1` at full width (`(y1 - y0) · width · 3` bytes), or why they cannot be read.
+    fn read_rows(&self, y0: u32, y1: u32) -> std::result::Result<Vec<u8>, String>;
+}
+
+/// One camera's image sent beside the frame rather than in it.
+#[derive(Clone)]
+pub enum RawImage {
+    /// JPEG or PNG file bytes (gRPC, KServe); empty: no image.
+    Encoded(Vec<u8>),
+    /// Decoded pixels read on demand.
+    Rows(Arc<dyn PixelRows>),
+}
+
+impl std::fmt::Debug for RawImage {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            RawImage::Encoded(b) => write!(f, "Encoded({} bytes)", b.len()),
+            RawImage::Rows(r) => write!(f, "Rows({:?})", r.size()),
+        }
     }
 }
 
@@ -83,11 +113,11 @@ fn planned_unless_full(value: Option<&str>) -> bool {
     !value.is_some_and(|v| v.eq_ignore_ascii_case("full"))
 }
 
-/// Encoded images that travel as bytes beside the frame (gRPC, KServe) rather than as base64 in
-/// it, in camera order: the single camera's, or each of the frame's `cameras`'. An empty entry
-/// is no image.
-#[derive(Debug, Clone, Default, PartialEq)]
-pub struct RawImages(pub Vec<Vec<u8>>);
+/// Images that travel beside the frame (gRPC, KServe) rather than as base64 in it, in camera
+/// order: the single camera's, or each of the frame's `cameras`'. An empty encoded entry is no
+/// image.
+#[derive(Debug, Clone, Default)]
+pub struct RawImages(pub Vec<RawImage>);
 
 /// One camera's image as the request carries it, before its header is read.
 #[derive(Debug, Default)]
@@ -98,6 +128,14 @@ pub struct ImageInput<'a> {
     pub base64: Option<&'a str>,
     /// Decoded pixels (moved out of the frame, so that they are not copied).
     pub pixels: Option<RgbPixels>,
+    /// Decoded pixels read on demand, sent beside the frame.
+    pub rows: Option<Arc<dyn PixelRows>>,
+}
+
+impl std::fmt::Debug for dyn PixelRows {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "PixelRows({:?})", self.size())
+    }
 }
 
 /// The single-camera frame's image, header read and checked: `raw_image` (file bytes, as gRPC
@@ -109,6 +147,7 @@ pub fn open(frame: &Frame, raw_image: Option<Vec<u8>>, pixels: Option<RgbPixels>
         raw: raw_image,
         base64: frame.image.as_deref(),
         pixels: pixels.or_else(|| frame.image_rgb.clone()),
+        rows: None,
     };
     open_camera(input, c)
 }
@@ -117,8 +156,21 @@ pub fn open(frame: &Frame, raw_image: Option<Vec<u8>>, pixels: Option<RgbPixels>
 /// single-camera fields (`image`, `image_rgb`); a multi-camera caller names them within its
 /// camera (`Error::within`).
 pub fn open_camera(input: ImageInput<'_>, c: &CameraCalibration) -> Result<CameraImage> {
-    let ImageInput { raw, base64, pixels } = input;
+    let ImageInput { raw, base64, pixels, rows } = input;
     let encoded_given = raw.as_ref().is_some_and(|b| !b.is_empty()) || base64.is_some();
+    if let Some(rows) = rows {
+        if encoded_given || pixels.is_some() {
+            return Err(Error::field("image_rgb", "send the image once: file bytes, pixels, or shared memory"));
+        }
+        let (w, h) = rows.size();
+        if (w, h) != (c.width, c.height) {
+            return Err(Error::field(
+                "image_rgb.width/height",
+                format!("{w}x{h} but calibration.width/height say {}x{}", c.width, c.height),
+            ));
+        }
+        return Ok(CameraImage::Rows(rows));
+    }
     if let Some(px) = pixels {
         if encoded_given {
             return Err(Error::field("image_rgb", "send either an encoded image or image_rgb pixels, not both"));
@@ -214,6 +266,14 @@ pub fn decode_crops(
             let crops = windows.iter().map(|t| still_wanted().map(|()| crop_rgb(image, &scaled(t, 1))));
             return crops.collect::<Result<_>>().map(Ok);
         }
+        CameraImage::Rows(rows) => {
+            still_wanted()?;
+            let band = match read_band(rows.as_ref(), windows, width, height) {
+                Ok(band) => band,
+                Err(e) => return Err(Error::field("image_rgb", e)),
+            };
+            return windows.iter().map(|t| still_wanted().map(|()| band.crop(t))).collect::<Result<_>>().map(Ok);
+        }
         CameraImage::Png(bytes) => {
             still_wanted()?;
             let img = match decode_with_image_crate(bytes, image::ImageFormat::Png) {
@@ -245,6 +305,23 @@ pub fn decode_crops(
         }
     }
     Ok(Ok(crops.into_iter().zip(windows).map(|(c, t)| c.unwrap_or_else(|| black(t))).collect()))
+}
+
+/// The band of whole rows of `rows` that the windows' crops read (`pipeline::pixel_region`), as
+/// a part of the image: a crop from it equals one from the whole image. No window touching the
+/// image reads nothing (every crop is black).
+fn read_band(
+    rows: &dyn PixelRows,
+    windows: &[CropTransform],
+    width: u32,
+    height: u32,
+) -> std::result::Result<DecodedImage, String> {
+    let Some(r) = pixel_region(windows, width, height) else {
+        return Ok(DecodedImage { image: RgbImage::new(0, 0), denominator: 1, origin: (0, 0) });
+    };
+    let pixels = rows.read_rows(r.y0, r.y1)?;
+    let image = RgbImage::from_raw(width, r.y1 - r.y0, pixels).ok_or("the pixel rows read have the wrong size")?;
+    Ok(DecodedImage { image, denominator: 1, origin: (0, r.y0) })
 }
 
 fn decode_with_image_crate(bytes: &[u8], format: image::ImageFormat) -> std::result::Result<DecodedImage, String> {
@@ -496,5 +573,72 @@ mod tests {
         assert!(planned.unwrap_err().contains("corrupt data"));
         let whole = decode_planned(&bytes, &DecodePlan::full(200, 120), true);
         assert!(whole.err().is_some_and(|e| e.contains("corrupt data")));
+    }
+
+    /// Pixels read on demand from an image in memory, counting the rows read.
+    struct Counted {
+        image: RgbImage,
+        rows_read: std::sync::Mutex<Vec<(u32, u32)>>,
+    }
+
+    impl PixelRows for Counted {
+        fn size(&self) -> (u32, u32) {
+            self.image.dimensions()
+        }
+
+        fn read_rows(&self, y0: u32, y1: u32) -> std::result::Result<Vec<u8>, String> {
+            self.rows_read.lock().unwrap().push((y0, y1));
+            let row = self.image.width() as usize * 3;
+            Ok(self.image.as_raw()[y0 as usize * row..y1 as usize * row].to_vec())
+        }
+    }
+
+    #[test]
+    fn crops_from_rows_read_on_demand_equal_crops_from_the_whole_image() {
+        let (img, _) = pattern(640, 480);
+        let w = |x0: f64, y0: f64, side: f64| CropTransform { x0, y0, scale: 64.0 / side, size: 64 };
+        let cases: Vec<Vec<CropTransform>> = vec![
+            vec![w(300.0, 200.0, 90.0)],
+            vec![w(10.0, 150.0, 120.0), w(500.0, 260.0, 200.0)],
+            vec![w(-30.0, -20.0, 100.0)],
+            vec![w(600.0, 440.0, 150.0)],
+            vec![w(700.0, 100.0, 50.0)],
+            vec![],
+        ];
+        for windows in cases {
+            let rows = Arc::new(Counted { image: img.clone(), rows_read: Default::default() });
+            let from_rows =
+                decode_crops(&CameraImage::Rows(rows.clone()), &windows, 640, 480, || Ok(())).unwrap().unwrap();
+            let whole =
+                decode_crops(&CameraImage::Pixels(img.clone()), &windows, 640, 480, || Ok(())).unwrap().unwrap();
+            assert_eq!(from_rows, whole, "{windows:?}");
+            let read = rows.rows_read.lock().unwrap().clone();
+            match crate::pipeline::pixel_region(&windows, 640, 480) {
+                // one read of the band the crops need, not the whole image
+                Some(r) => {
+                    assert_eq!(read, vec![(r.y0, r.y1)], "{windows:?}");
+                    assert!(r.y1 - r.y0 < 480 || windows.len() > 1, "{windows:?}: {r:?}");
+                }
+                None => assert!(read.is_empty(), "{windows:?}: nothing to read"),
+            }
+        }
+    }
+
+    #[test]
+    fn rows_are_checked_against_the_calibration_and_sent_once() {
+        let c = CameraCalibration { intrinsic: vec![500.0; 9], extrinsic: vec![0.0; 16], width: 640, height: 480 };
+        let rows = |w, h| {
+            let image = RgbImage::new(w, h);
+            Some(Arc::new(Counted { image, rows_read: Default::default() }) as Arc<dyn PixelRows>)
+        };
+        let ok = open_camera(ImageInput { rows: rows(640, 480), ..Default::default() }, &c).unwrap();
+        assert!(matches!(ok, CameraImage::Rows(_)) && ok.usable());
+        let e = open_camera(ImageInput { rows: rows(320, 480), ..Default::default() }, &c).err().unwrap();
+        assert_eq!(e.field_name(), Some("image_rgb.width/height"));
+        let both = ImageInput { rows: rows(640, 480), raw: Some(vec![0xFF, 0xD8]), ..Default::default() };
+        assert_eq!(open_camera(both, &c).err().unwrap().field_name(), Some("image_rgb"));
+        let px = RgbPixels { width: 640, height: 480, pixels: vec![0; 640 * 480 * 3] };
+        let both = ImageInput { rows: rows(640, 480), pixels: Some(px), ..Default::default() };
+        assert_eq!(open_camera(both, &c).err().unwrap().field_name(), Some("image_rgb"));
     }
 }

@@ -108,8 +108,24 @@ pub fn plan_decode(windows: &[CropTransform], width: u32, height: u32) -> Decode
         return DecodePlan { denominator: 1, region: None };
     }
     let denominator = used.iter().map(|t| window_denominator(t)).min().unwrap_or(1);
+    DecodePlan { denominator, region: region_at(&used, denominator, width, height) }
+}
+
+/// The full-resolution pixels `crop_rgb` reads for `windows` cut at full resolution (raw pixels:
+/// no DCT scale), clipped to the image; `None` when no window touches it.
+pub fn pixel_region(windows: &[CropTransform], width: u32, height: u32) -> Option<PixelRect> {
+    let used: Vec<&CropTransform> = windows.iter().filter(|t| usable(t, width, height)).collect();
+    if used.is_empty() {
+        return None;
+    }
+    region_at(&used, 1, width, height)
+}
+
+/// The union of the usable windows' reads on the image decoded at `1/denominator`, in
+/// full-resolution pixels, clipped to the image.
+fn region_at(used: &[&CropTransform], denominator: u32, width: u32, height: u32) -> Option<PixelRect> {
     let (mut x0, mut y0, mut x1, mut y1) = (i64::MAX, i64::MAX, i64::MIN, i64::MIN);
-    for t in &used {
+    for t in used {
         // `crop_rgb`'s read on the scaled image (window plus filter margin), in full-res pixels
         let s = scaled(t, denominator);
         let margin = (1.0 / s.scale).ceil() as i64 + 2;
@@ -121,7 +137,7 @@ pub fn plan_decode(windows: &[CropTransform], width: u32, height: u32) -> Decode
     }
     let clip = |v: i64, n: u32| v.clamp(0, n as i64) as u32;
     let region = PixelRect { x0: clip(x0, width), y0: clip(y0, height), x1: clip(x1, width), y1: clip(y1, height) };
-    DecodePlan { denominator, region: (region.area() > 0).then_some(region) }
+    (region.area() > 0).then_some(region)
 }
 
 /// The decode passes for a frame's crop windows: one per DCT scale that some usable window

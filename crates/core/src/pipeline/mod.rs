@@ -13,8 +13,8 @@ mod prepare;
 pub use config::{PipelineConfig, PointFrame, NOMINAL_LIDAR_ORIGIN};
 pub use crop::{crop_rgb, normalize, CropTransform};
 pub use decode_plan::{
-    plan_decode, plan_passes, scaled, window_denominator, DecodePass, DecodePlan, PixelRect, CROP_DENOMINATORS,
-    DCT_DENOMINATORS,
+    pixel_region, plan_decode, plan_passes, scaled, window_denominator, DecodePass, DecodePlan, PixelRect,
+    CROP_DENOMINATORS, DCT_DENOMINATORS,
 };
 pub use facing::{facing, yaw_difference, Facing, FULL_WIDTH_M};
 pub use fusion::{

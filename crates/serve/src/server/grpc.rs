@@ -16,7 +16,7 @@ use posefuse_core::error::{Error, Result};
 use posefuse_core::frame::{
     Box2d, Box3d, CameraCalibration, Frame, FrameCamera, Person, Points, RequestedMode, RgbPixels,
 };
-use posefuse_core::image_decode::RawImages;
+use posefuse_core::image_decode::{RawImage, RawImages};
 
 /// Generated messages, server and client of `proto/posefuse.proto`.
 #[allow(clippy::all, missing_docs)]
@@ -179,7 +179,7 @@ pub fn frame_from_proto(r: proto::PredictRequest) -> Result<(Frame, Option<RawIm
         persons,
         mode: mode_from_proto(r.mode)?,
     };
-    Ok((frame, Some(RawImages(images))))
+    Ok((frame, Some(RawImages(images.into_iter().map(RawImage::Encoded).collect()))))
 }
 
 /// A frame as its gRPC message, with the single camera's image as encoded bytes (empty: no

@@ -6,12 +6,12 @@
 use posefuse_core::error::{Error, Result};
 use posefuse_core::frame::{Box3d, CameraCalibration, Frame, Person, RgbPixels};
 use posefuse_core::geometry::{best_camera, Camera};
-use posefuse_core::image_decode::{self, CameraImage, ImageInput, RawImages};
+use posefuse_core::image_decode::{self, CameraImage, ImageInput, RawImage, RawImages};
 
 /// One camera's image as the request carried it, moved out of the frame, not yet opened.
 #[derive(Default)]
 struct ImageSource {
-    raw: Option<Vec<u8>>,
+    raw: Option<RawImage>,
     base64: Option<String>,
     pixels: Option<RgbPixels>,
 }
@@ -92,7 +92,12 @@ impl FrameCameras {
                 continue;
             }
             let Some(source) = self.sources[c].take() else { continue };
-            let input = ImageInput { raw: source.raw, base64: source.base64.as_deref(), pixels: source.pixels };
+            let (raw, rows) = match source.raw {
+                Some(RawImage::Encoded(bytes)) => (Some(bytes), None),
+                Some(RawImage::Rows(rows)) => (None, Some(rows)),
+                None => (None, None),
+            };
+            let input = ImageInput { raw, base64: source.base64.as_deref(), pixels: source.pixels, rows };
             let image = image_decode::open_camera(input, &self.calibrations[c]).map_err(|e| e.within(&self.at[c]))?;
             self.images[c] = Some(image);
         }
@@ -116,8 +121,9 @@ impl FrameCameras {
 
 /// Each of `cameras` sends exactly one of an encoded image and pixels.
 fn require_one_image(source: &ImageSource, at: &str) -> Result<()> {
-    let encoded = source.raw.as_ref().is_some_and(|b| !b.is_empty()) || source.base64.is_some();
-    match (encoded, source.pixels.is_some()) {
+    let encoded = matches!(&source.raw, Some(RawImage::Encoded(b)) if !b.is_empty()) || source.base64.is_some();
+    let pixels = source.pixels.is_some() || matches!(source.raw, Some(RawImage::Rows(_)));
+    match (encoded, pixels) {
         (true, true) => {
             Err(Error::field(format!("{at}.image_rgb"), "send either an encoded image or image_rgb pixels, not both"))
         }

@@ -18,7 +18,7 @@ use std::sync::atomic::Ordering;
 use super::AppState;
 use crate::service::admission::Ticket;
 use posefuse_core::error::{Error, Result};
-use posefuse_core::image_decode::RawImages;
+use posefuse_core::image_decode::{RawImage, RawImages};
 use shared_tensors::SharedInput;
 use tensors::{InputTensor, OutputTensor, Placement, RequestedOutput};
 
@@ -98,14 +98,25 @@ pub async fn infer(state: &AppState, ticket: &Ticket, req: InferRequest) -> Resu
     tensors::check_requested(req.outputs.as_deref())?;
     let output_regions = shared_tensors::hold_output_regions(&state.shared_memory, req.outputs.as_deref())?;
     let mut inputs = req.inputs;
+    let mut shared_pixels = None;
     if !req.shared_inputs.is_empty() {
-        inputs.extend(shared_tensors::read_inputs(&state.shared_memory, req.shared_inputs, state.body_limit)?);
+        let shared = shared_tensors::read_inputs(&state.shared_memory, req.shared_inputs, state.body_limit)?;
+        inputs.extend(shared.tensors);
+        shared_pixels = shared.pixels;
     }
     let (frame, image) = tensors::frame_from_inputs(inputs, req.id.clone())?;
+    let raw = match (image, shared_pixels) {
+        (None, None) => None,
+        (Some(bytes), None) => Some(RawImages(vec![RawImage::Encoded(bytes)])),
+        (None, Some(rows)) => Some(RawImages(vec![RawImage::Rows(rows)])),
+        (Some(_), Some(_)) => {
+            return Err(Error::field("image_rgb", "send either `image` (file bytes) or `image_rgb` (pixels), not both"))
+        }
+    };
     let m = frame.persons.len();
     let resp = state
         .predictor
-        .answer_admitted(ticket, frame, image.map(|b| RawImages(vec![b])), state.request_timeout)
+        .answer_admitted(ticket, frame, raw, state.request_timeout)
         .await
         .map_err(tensors::rename_error)?;
     let all = tensors::outputs_from_response(&resp, m)?;

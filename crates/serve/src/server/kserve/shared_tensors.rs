@@ -1,9 +1,12 @@
 //! A request's tensors that lie in system shared memory (`shared_memory`): inputs read before
-//! the frame is built, output regions held before inference runs and written after it. The
+//! the frame is built (except the camera's pixels, which the crops read a band of rows at a time,
+//! [`SharedPixels`]), output regions held before inference runs and written after it. The
 //! transports parse the `shared_memory_*` parameters into [`ShmRef`]s; this is the one place
 //! that reads and writes the regions for a request.
 
 use std::sync::Arc;
+
+use posefuse_core::image_decode::PixelRows;
 
 use super::shared_memory::{Region, ShmRef, SystemSharedMemory};
 use super::tensors::{DataType, InputTensor, OutputTensor, Placement, RequestedOutput, TensorData};
@@ -18,27 +21,97 @@ pub struct SharedInput {
     pub at: ShmRef,
 }
 
-/// The inputs in shared memory as tensors. Their sizes together are bounded by `limit` (the
-/// body limit: a region is read into memory as a body would be) before any byte is read.
-pub fn read_inputs(shm: &SystemSharedMemory, shared: Vec<SharedInput>, limit: usize) -> Result<Vec<InputTensor>> {
+/// The camera image's name among the inputs.
+const IMAGE_RGB: &str = "image_rgb";
+
+/// The camera's RGB8 pixels in a held region, read a band of rows at a time by the crops.
+pub struct SharedPixels {
+    region: Arc<Region>,
+    at: ShmRef,
+    width: u32,
+    height: u32,
+}
+
+impl SharedPixels {
+    /// `image_rgb` ([H, W, 3] UINT8) at `input.at` of `region`, its size checked against its
+    /// shape and its span against the region (no byte is read).
+    fn new(region: Arc<Region>, input: &SharedInput) -> Result<SharedPixels> {
+        let field = |m: String| Error::field(IMAGE_RGB, m);
+        if input.datatype != DataType::U8 {
+            return Err(field(format!("datatype {}, expected UINT8", input.datatype.as_str())));
+        }
+        let (height, width) = match input.shape[..] {
+            [h, w, 3] => (u32::try_from(h).ok(), u32::try_from(w).ok()),
+            _ => (None, None),
+        };
+        let (Some(height), Some(width)) = (height, width) else {
+            return Err(field(format!("shape {:?}, expected [H, W, 3]", input.shape)));
+        };
+        let bytes = u64::from(width) * u64::from(height) * 3;
+        if bytes != input.at.byte_size {
+            return Err(field(format!(
+                "shape {:?} holds {bytes} bytes but shared_memory_byte_size is {}",
+                input.shape, input.at.byte_size
+            )));
+        }
+        region.check_span(IMAGE_RGB, &input.at)?;
+        Ok(SharedPixels { region, at: input.at.clone(), width, height })
+    }
+}
+
+impl PixelRows for SharedPixels {
+    fn size(&self) -> (u32, u32) {
+        (self.width, self.height)
+    }
+
+    fn read_rows(&self, y0: u32, y1: u32) -> std::result::Result<Vec<u8>, String> {
+        let row = u64::from(self.width) * 3;
+        let (y0, y1) = (y0.min(self.height), y1.min(self.height));
+        let rows = ShmRef {
+            region: self.at.region.clone(),
+            offset: self.at.offset + u64::from(y0) * row,
+            byte_size: u64::from(y1.saturating_sub(y0)) * row,
+        };
+        self.region.read(IMAGE_RGB, &rows).map_err(|e| e.to_string())
+    }
+}
+
+/// A request's inputs from shared memory.
+#[derive(Debug)]
+pub struct SharedInputs {
+    /// Every input but the camera's pixels, read.
+    pub tensors: Vec<InputTensor>,
+    /// The camera's pixels (`image_rgb`), read by the crops.
+    pub pixels: Option<Arc<dyn PixelRows>>,
+}
+
+/// The inputs in shared memory: the camera's pixels (`image_rgb`) as a source whose crops read
+/// rows of it, the others read as tensors. Their sizes together are bounded by `limit` (the body
+/// limit: a region is read into memory as a body would be) before any byte is read.
+pub fn read_inputs(shm: &SystemSharedMemory, shared: Vec<SharedInput>, limit: usize) -> Result<SharedInputs> {
     let total = shared.iter().fold(0u64, |n, s| n.saturating_add(s.at.byte_size));
     if total > limit as u64 {
         return Err(Error::PayloadTooLarge { limit });
     }
     let regions = shared.iter().map(|s| shm.region(&s.name, &s.at)).collect::<Result<Vec<_>>>()?;
-    shared
-        .into_iter()
-        .zip(regions)
-        .map(|(s, region)| {
-            let raw = region.read(&s.name, &s.at)?;
-            let data = match s.datatype {
-                // Pixels move into the frame as read (no second copy).
-                DataType::U8 => TensorData::U8(raw),
-                dt => TensorData::from_raw(&s.name, dt, &raw)?,
-            };
-            InputTensor::new(s.name, s.datatype, s.shape, data, false)
-        })
-        .collect()
+    let mut pixels: Option<Arc<dyn PixelRows>> = None;
+    let mut tensors = Vec::with_capacity(shared.len());
+    for (s, region) in shared.into_iter().zip(regions) {
+        if s.name == IMAGE_RGB {
+            if pixels.is_some() {
+                return Err(Error::field(IMAGE_RGB, "given twice"));
+            }
+            pixels = Some(Arc::new(SharedPixels::new(region, &s)?));
+            continue;
+        }
+        let raw = region.read(&s.name, &s.at)?;
+        let data = match s.datatype {
+            DataType::U8 => TensorData::U8(raw),
+            dt => TensorData::from_raw(&s.name, dt, &raw)?,
+        };
+        tensors.push(InputTensor::new(s.name, s.datatype, s.shape, data, false)?);
+    }
+    Ok(SharedInputs { tensors, pixels })
 }
 
 /// The regions a request's outputs go to, held from before inference until they are written, so
@@ -113,10 +186,22 @@ mod tests {
         let m = memory(dir.path());
         let shared =
             vec![input("image_rgb", DataType::U8, &[1, 2, 3], 0, 6), input("points", DataType::F32, &[1, 3], 6, 12)];
-        let got = read_inputs(&m, shared.clone(), 18).unwrap();
-        assert_eq!(got[0].data, TensorData::U8(vec![9; 6]));
-        assert_eq!(got[1].data, TensorData::F32(vec![1.5, -2.0, 3.25]));
+        let SharedInputs { tensors: got, pixels } = read_inputs(&m, shared.clone(), 18).unwrap();
+        assert_eq!(got.len(), 1, "the pixels are not read as a tensor");
+        assert_eq!(got[0].data, TensorData::F32(vec![1.5, -2.0, 3.25]));
+        let pixels = pixels.unwrap();
+        assert_eq!(pixels.size(), (2, 1));
+        assert_eq!(pixels.read_rows(0, 1).unwrap(), vec![9; 6]);
+        assert_eq!(pixels.read_rows(1, 1).unwrap(), Vec::<u8>::new());
         assert!(matches!(read_inputs(&m, shared, 17), Err(Error::PayloadTooLarge { limit: 17 })));
+        for bad in [
+            input("image_rgb", DataType::U8, &[1, 2, 3], 0, 5),
+            input("image_rgb", DataType::U8, &[2, 3], 0, 6),
+            input("image_rgb", DataType::U16, &[1, 1, 3], 0, 6),
+            input("image_rgb", DataType::U8, &[2, 2, 3], 8, 12),
+        ] {
+            assert_eq!(read_inputs(&m, vec![bad.clone()], 64).unwrap_err().field_name(), Some("image_rgb"), "{bad:?}");
+        }
         let e = read_inputs(&m, vec![input("points", DataType::F32, &[2, 3], 6, 12)], 64).unwrap_err();
         assert_eq!(e.field_name(), Some("points"), "shape and bytes disagree");
         let mut gone = input("points", DataType::F32, &[1, 3], 6, 12);
