@@ -24,7 +24,7 @@ use image::RgbImage;
 
 use crate::error::{Error, Result};
 use crate::frame::{CameraCalibration, Frame, RgbPixels};
-use crate::pipeline::{crop_rgb, pixel_region, plan_passes, scaled, CropTransform, DecodePlan};
+use crate::pipeline::{crop_rgb, pixel_region, plan_passes, scaled, CropTransform, DecodePlan, PixelRect};
 
 /// The camera image of a request, before its pixels are decoded.
 pub enum CameraImage {
@@ -39,7 +39,7 @@ pub enum CameraImage {
     /// Decoded RGB8 pixels sent by the caller, size checked.
     Pixels(RgbImage),
     /// Decoded RGB8 pixels read on demand, size checked: only the rows the crops need are read.
-    Rows(Arc<dyn PixelRows>),
+    Rows(Arc<dyn PixelSource>),
 }
 
 impl CameraImage {
@@ -49,14 +49,15 @@ impl CameraImage {
     }
 }
 
-/// Decoded RGB8 pixels that the caller reads on demand, a band of whole rows at a time: KServe's
-/// shared memory, where reading the 7 MB of a 1920×1280 frame (and faulting in the pages to hold
-/// it) costs more than the rest of the request, while its crops need a band of it.
-pub trait PixelRows: Send + Sync {
+/// Decoded RGB8 pixels that the caller reads on demand, the rectangle the crops need at a time:
+/// KServe's shared memory, where reading the 7 MB of a 1920×1280 frame (and faulting in the pages
+/// to hold it) costs more than the rest of the request, while its crops need a part of it.
+pub trait PixelSource: Send + Sync {
     /// Width and height in pixels.
     fn size(&self) -> (u32, u32);
-    /// Rows `y0..y1` at full width (`(y1 - y0) · width · 3` bytes), or why they cannot be read.
-    fn read_rows(&self, y0: u32, y1: u32) -> std::result::Result<Vec<u8>, String>;
+    /// The pixels of `r` (inside the image), row by row: `r.area() · 3` bytes, or why they
+    /// cannot be read.
+    fn read_rect(&self, r: PixelRect) -> std::result::Result<Vec<u8>, String>;
 }
 
 /// One camera's image sent beside the frame rather than in it.
@@ -65,7 +66,7 @@ pub enum RawImage {
     /// JPEG or PNG file bytes (gRPC, KServe); empty: no image.
     Encoded(Vec<u8>),
     /// Decoded pixels read on demand.
-    Rows(Arc<dyn PixelRows>),
+    Rows(Arc<dyn PixelSource>),
 }
 
 impl std::fmt::Debug for RawImage {
@@ -129,12 +130,12 @@ pub struct ImageInput<'a> {
     /// Decoded pixels (moved out of the frame, so that they are not copied).
     pub pixels: Option<RgbPixels>,
     /// Decoded pixels read on demand, sent beside the frame.
-    pub rows: Option<Arc<dyn PixelRows>>,
+    pub rows: Option<Arc<dyn PixelSource>>,
 }
 
-impl std::fmt::Debug for dyn PixelRows {
+impl std::fmt::Debug for dyn PixelSource {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "PixelRows({:?})", self.size())
+        write!(f, "PixelSource({:?})", self.size())
     }
 }
 
@@ -268,7 +269,7 @@ pub fn decode_crops(
         }
         CameraImage::Rows(rows) => {
             still_wanted()?;
-            let band = match read_band(rows.as_ref(), windows, width, height) {
+            let band = match read_region(rows.as_ref(), windows, width, height) {
                 Ok(band) => band,
                 Err(e) => return Err(Error::field("image_rgb", e)),
             };
@@ -307,11 +308,11 @@ pub fn decode_crops(
     Ok(Ok(crops.into_iter().zip(windows).map(|(c, t)| c.unwrap_or_else(|| black(t))).collect()))
 }
 
-/// The band of whole rows of `rows` that the windows' crops read (`pipeline::pixel_region`), as
-/// a part of the image: a crop from it equals one from the whole image. No window touching the
-/// image reads nothing (every crop is black).
-fn read_band(
-    rows: &dyn PixelRows,
+/// The rectangle of `source` that the windows' crops read (`pipeline::pixel_region`), as a part
+/// of the image: a crop from it equals one from the whole image. When no window touches the
+/// image nothing is read (every crop is black).
+fn read_region(
+    source: &dyn PixelSource,
     windows: &[CropTransform],
     width: u32,
     height: u32,
@@ -319,9 +320,9 @@ fn read_band(
     let Some(r) = pixel_region(windows, width, height) else {
         return Ok(DecodedImage { image: RgbImage::new(0, 0), denominator: 1, origin: (0, 0) });
     };
-    let pixels = rows.read_rows(r.y0, r.y1)?;
-    let image = RgbImage::from_raw(width, r.y1 - r.y0, pixels).ok_or("the pixel rows read have the wrong size")?;
-    Ok(DecodedImage { image, denominator: 1, origin: (0, r.y0) })
+    let pixels = source.read_rect(r)?;
+    let image = RgbImage::from_raw(r.x1 - r.x0, r.y1 - r.y0, pixels).ok_or("the pixels read have the wrong size")?;
+    Ok(DecodedImage { image, denominator: 1, origin: (r.x0, r.y0) })
 }
 
 fn decode_with_image_crate(bytes: &[u8], format: image::ImageFormat) -> std::result::Result<DecodedImage, String> {
@@ -578,18 +579,23 @@ mod tests {
     /// Pixels read on demand from an image in memory, counting the rows read.
     struct Counted {
         image: RgbImage,
-        rows_read: std::sync::Mutex<Vec<(u32, u32)>>,
+        rows_read: std::sync::Mutex<Vec<PixelRect>>,
     }
 
-    impl PixelRows for Counted {
+    impl PixelSource for Counted {
         fn size(&self) -> (u32, u32) {
             self.image.dimensions()
         }
 
-        fn read_rows(&self, y0: u32, y1: u32) -> std::result::Result<Vec<u8>, String> {
-            self.rows_read.lock().unwrap().push((y0, y1));
-            let row = self.image.width() as usize * 3;
-            Ok(self.image.as_raw()[y0 as usize * row..y1 as usize * row].to_vec())
+        fn read_rect(&self, r: PixelRect) -> std::result::Result<Vec<u8>, String> {
+            self.rows_read.lock().unwrap().push(r);
+            let mut out = Vec::new();
+            for y in r.y0..r.y1 {
+                for x in r.x0..r.x1 {
+                    out.extend(self.image.get_pixel(x, y).0);
+                }
+            }
+            Ok(out)
         }
     }
 
@@ -614,10 +620,10 @@ mod tests {
             assert_eq!(from_rows, whole, "{windows:?}");
             let read = rows.rows_read.lock().unwrap().clone();
             match crate::pipeline::pixel_region(&windows, 640, 480) {
-                // one read of the band the crops need, not the whole image
+                // one read of the rectangle the crops need, not the whole image
                 Some(r) => {
-                    assert_eq!(read, vec![(r.y0, r.y1)], "{windows:?}");
-                    assert!(r.y1 - r.y0 < 480 || windows.len() > 1, "{windows:?}: {r:?}");
+                    assert_eq!(read, vec![r], "{windows:?}");
+                    assert!(r.area() < 640 * 480, "{windows:?}: {r:?}");
                 }
                 None => assert!(read.is_empty(), "{windows:?}: nothing to read"),
             }
@@ -629,7 +635,7 @@ mod tests {
         let c = CameraCalibration { intrinsic: vec![500.0; 9], extrinsic: vec![0.0; 16], width: 640, height: 480 };
         let rows = |w, h| {
             let image = RgbImage::new(w, h);
-            Some(Arc::new(Counted { image, rows_read: Default::default() }) as Arc<dyn PixelRows>)
+            Some(Arc::new(Counted { image, rows_read: Default::default() }) as Arc<dyn PixelSource>)
         };
         let ok = open_camera(ImageInput { rows: rows(640, 480), ..Default::default() }, &c).unwrap();
         assert!(matches!(ok, CameraImage::Rows(_)) && ok.usable());

@@ -204,12 +204,18 @@ impl Region {
 
     /// The `at.byte_size` bytes at `at` (the caller bounds the size first).
     pub fn read(&self, tensor: &str, at: &ShmRef) -> Result<Vec<u8>> {
-        let start = self.span(tensor, at)?;
         let len =
             usize::try_from(at.byte_size).map_err(|_| Error::field(tensor, "shared_memory_byte_size is too large"))?;
         let mut buf = vec![0u8; len];
-        self.file.read_exact_at(&mut buf, start).map_err(|e| self.io_error(tensor, e))?;
+        self.read_into(tensor, at.offset, &mut buf)?;
         Ok(buf)
+    }
+
+    /// Fills `buf` from `offset` bytes into the region.
+    pub fn read_into(&self, tensor: &str, offset: u64, buf: &mut [u8]) -> Result<()> {
+        let at = ShmRef { region: String::new(), byte_size: buf.len() as u64, offset };
+        let start = self.span(tensor, &at)?;
+        self.file.read_exact_at(buf, start).map_err(|e| self.io_error(tensor, e))
     }
 
     /// Writes `bytes` at `at` (which must have room for them); never past the object's end.

@@ -6,7 +6,8 @@
 
 use std::sync::Arc;
 
-use posefuse_core::image_decode::PixelRows;
+use posefuse_core::image_decode::PixelSource;
+use posefuse_core::pipeline::PixelRect;
 
 use super::shared_memory::{Region, ShmRef, SystemSharedMemory};
 use super::tensors::{DataType, InputTensor, OutputTensor, Placement, RequestedOutput, TensorData};
@@ -59,20 +60,27 @@ impl SharedPixels {
     }
 }
 
-impl PixelRows for SharedPixels {
+impl PixelSource for SharedPixels {
     fn size(&self) -> (u32, u32) {
         (self.width, self.height)
     }
 
-    fn read_rows(&self, y0: u32, y1: u32) -> std::result::Result<Vec<u8>, String> {
-        let row = u64::from(self.width) * 3;
-        let (y0, y1) = (y0.min(self.height), y1.min(self.height));
-        let rows = ShmRef {
-            region: self.at.region.clone(),
-            offset: self.at.offset + u64::from(y0) * row,
-            byte_size: u64::from(y1.saturating_sub(y0)) * row,
+    /// One positioned read for whole rows, else one per row: the crops' pixels only, rather than
+    /// whole rows that would have to be faulted in and copied.
+    fn read_rect(&self, r: PixelRect) -> std::result::Result<Vec<u8>, String> {
+        let (x1, y1) = (r.x1.min(self.width), r.y1.min(self.height));
+        let (x0, y0) = (r.x0.min(x1), r.y0.min(y1));
+        let row = (x1 - x0) as usize * 3;
+        let mut out = vec![0u8; row * (y1 - y0) as usize];
+        let at = |y: u32| self.at.offset + (u64::from(y) * u64::from(self.width) + u64::from(x0)) * 3;
+        let read = if (x0, x1) == (0, self.width) || row == 0 {
+            self.region.read_into(IMAGE_RGB, at(y0), &mut out)
+        } else {
+            let mut rows = out.chunks_exact_mut(row).zip(y0..y1);
+            rows.try_for_each(|(dst, y)| self.region.read_into(IMAGE_RGB, at(y), dst))
         };
-        self.region.read(IMAGE_RGB, &rows).map_err(|e| e.to_string())
+        read.map_err(|e| e.to_string())?;
+        Ok(out)
     }
 }
 
@@ -82,7 +90,7 @@ pub struct SharedInputs {
     /// Every input but the camera's pixels, read.
     pub tensors: Vec<InputTensor>,
     /// The camera's pixels (`image_rgb`), read by the crops.
-    pub pixels: Option<Arc<dyn PixelRows>>,
+    pub pixels: Option<Arc<dyn PixelSource>>,
 }
 
 /// The inputs in shared memory: the camera's pixels (`image_rgb`) as a source whose crops read
@@ -94,7 +102,7 @@ pub fn read_inputs(shm: &SystemSharedMemory, shared: Vec<SharedInput>, limit: us
         return Err(Error::PayloadTooLarge { limit });
     }
     let regions = shared.iter().map(|s| shm.region(&s.name, &s.at)).collect::<Result<Vec<_>>>()?;
-    let mut pixels: Option<Arc<dyn PixelRows>> = None;
+    let mut pixels: Option<Arc<dyn PixelSource>> = None;
     let mut tensors = Vec::with_capacity(shared.len());
     for (s, region) in shared.into_iter().zip(regions) {
         if s.name == IMAGE_RGB {
@@ -191,8 +199,10 @@ mod tests {
         assert_eq!(got[0].data, TensorData::F32(vec![1.5, -2.0, 3.25]));
         let pixels = pixels.unwrap();
         assert_eq!(pixels.size(), (2, 1));
-        assert_eq!(pixels.read_rows(0, 1).unwrap(), vec![9; 6]);
-        assert_eq!(pixels.read_rows(1, 1).unwrap(), Vec::<u8>::new());
+        let rect = |x0, y0, x1, y1| PixelRect { x0, y0, x1, y1 };
+        assert_eq!(pixels.read_rect(rect(0, 0, 2, 1)).unwrap(), vec![9; 6]);
+        assert_eq!(pixels.read_rect(rect(1, 0, 2, 1)).unwrap(), vec![9; 3]);
+        assert_eq!(pixels.read_rect(rect(0, 1, 2, 1)).unwrap(), Vec::<u8>::new());
         assert!(matches!(read_inputs(&m, shared, 17), Err(Error::PayloadTooLarge { limit: 17 })));
         for bad in [
             input("image_rgb", DataType::U8, &[1, 2, 3], 0, 5),
