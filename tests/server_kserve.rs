@@ -57,14 +57,7 @@ fn bytes(name: &'static str, items: Vec<Vec<u8>>, as_text: Vec<String>) -> Tenso
 /// A frame as the contract's input tensors (image as PNG bytes; base64 text in JSON).
 fn tensors(f: &Frame, png: &[u8]) -> Vec<Tensor> {
     let pts: Vec<f32> = f.points.decode().unwrap().into_iter().flatten().collect();
-    let b3: Vec<f64> = f
-        .persons
-        .iter()
-        .flat_map(|p| {
-            let b = p.box_3d;
-            [b.center_x, b.center_y, b.center_z, b.length, b.width, b.height, b.heading]
-        })
-        .collect();
+    let b3: Vec<f64> = f.persons.iter().flat_map(|p| p.box_3d.to_row()).collect();
     let b2: Vec<f64> = f
         .persons
         .iter()

@@ -60,14 +60,7 @@ fn pixels_and_points(f: &Frame) -> (Vec<u8>, Vec<u8>) {
 /// The frame's other inputs as JSON tensors.
 fn json_inputs(f: &Frame) -> Vec<Value> {
     let c = f.calibration.as_ref().unwrap();
-    let b3: Vec<f64> = f
-        .persons
-        .iter()
-        .flat_map(|p| {
-            let b = p.box_3d;
-            [b.center_x, b.center_y, b.center_z, b.length, b.width, b.height, b.heading]
-        })
-        .collect();
+    let b3: Vec<f64> = f.persons.iter().flat_map(|p| p.box_3d.to_row()).collect();
     vec![
         json!({"name": "calibration_intrinsic", "datatype": "FP64", "shape": [9], "data": c.intrinsic}),
         json!({"name": "calibration_extrinsic", "datatype": "FP64", "shape": [16], "data": c.extrinsic}),
@@ -330,15 +323,7 @@ async fn grpc_reads_and_writes_shared_memory_as_rest_does() {
         };
     let c = f.calibration.as_ref().unwrap();
     let m = f.persons.len();
-    let b3: Vec<u8> = f
-        .persons
-        .iter()
-        .flat_map(|p| {
-            let b = p.box_3d;
-            [b.center_x, b.center_y, b.center_z, b.length, b.width, b.height, b.heading]
-        })
-        .flat_map(f64::to_le_bytes)
-        .collect();
+    let b3: Vec<u8> = f.persons.iter().flat_map(|p| p.box_3d.to_row()).flat_map(f64::to_le_bytes).collect();
     let le = |v: &[f64]| v.iter().flat_map(|x| x.to_le_bytes()).collect::<Vec<u8>>();
     let request = proto::ModelInferRequest {
         model_name: "default".into(),

@@ -415,6 +415,12 @@ impl Box2d {
 }
 
 impl Box3d {
+    /// The box as the row `center_x, center_y, center_z, length, width, height, heading` (the
+    /// Open Inference Protocol's `boxes_3d`, the shards' `box3d`).
+    pub fn to_row(&self) -> [f64; 7] {
+        [self.center_x, self.center_y, self.center_z, self.length, self.width, self.height, self.heading]
+    }
+
     /// Checks the box is finite with positive size.
     pub fn validate(&self, field: &str) -> Result<()> {
         finite(&format!("{field}.center_x"), self.center_x)?;

@@ -262,7 +262,7 @@ fn make_sample(
         kp3d_vehicle: p.keypoints.map(f32x),
         kp3d_visible: labels.visible_3d.map(u8::from),
         kp3d_occluded: labels.occluded_3d.map(u8::from),
-        box3d: f32x([b.center_x, b.center_y, b.center_z, b.length, b.width, b.height, b.heading]),
+        box3d: f32x(b.to_row()),
         box2d: f32x([labels.box2d.center_x, labels.box2d.center_y, labels.box2d.width, labels.box2d.height]),
         crop: f32x([t.x0, t.y0, t.scale]),
         intrinsic: std::array::from_fn(|i| calib.intrinsic[i] as f32),

@@ -151,7 +151,7 @@ pub fn person_sample(
         kp3d_vehicle: l.kp3d.map(|k| k.map_or([0.0; 3], |k| f32x(k.at))),
         kp3d_visible,
         kp3d_occluded,
-        box3d: f32x([b.center_x, b.center_y, b.center_z, b.length, b.width, b.height, b.heading]),
+        box3d: f32x(b.to_row()),
         box2d: f32x([l.box2d.center_x, l.box2d.center_y, l.box2d.width, l.box2d.height]),
         crop: f32x([t.x0, t.y0, t.scale]),
         intrinsic: std::array::from_fn(|i| calib.intrinsic[i] as f32),

@@ -86,14 +86,7 @@ pub async fn unregister(url: &str, objects: &Objects) -> Result<()> {
 fn request(model: &str, region: &str, f: &Frame, pixel_bytes: usize, point_bytes: usize) -> Result<Value> {
     let Some(c) = f.calibration.as_ref() else { bail!("a fixture without a calibration") };
     let m = f.persons.len();
-    let b3: Vec<f64> = f
-        .persons
-        .iter()
-        .flat_map(|p| {
-            let b = p.box_3d;
-            [b.center_x, b.center_y, b.center_z, b.length, b.width, b.height, b.heading]
-        })
-        .collect();
+    let b3: Vec<f64> = f.persons.iter().flat_map(|p| p.box_3d.to_row()).collect();
     // JSON has no NaN: a null row is "no 2D box".
     let b2: Vec<Option<f64>> = f
         .persons
