@@ -288,9 +288,7 @@ fn open_object(path: &std::path::Path, key: &str) -> Result<(File, bool)> {
     let open = |write: bool| OpenOptions::new().read(true).write(write).custom_flags(libc::O_NOFOLLOW).open(path);
     let (file, writable) = match open(true) {
         Ok(f) => (f, true),
-        Err(e) if e.kind() == std::io::ErrorKind::PermissionDenied => {
-            (open(false).map_err(|e| open_error(key, &e))?, false)
-        }
+        Err(e) if read_only_will_do(e.kind()) => (open(false).map_err(|e| open_error(key, &e))?, false),
         Err(e) => return Err(open_error(key, &e)),
     };
     let meta = file.metadata().map_err(|e| open_error(key, &e))?;
@@ -298,6 +296,12 @@ fn open_object(path: &std::path::Path, key: &str) -> Result<(File, bool)> {
         return Err(Error::field("key", format!("`{key}` is not a shared memory object")));
     }
     Ok((file, writable))
+}
+
+/// Whether an object the server may not open for writing is opened read-only instead (inputs
+/// only; an output written to it is then a 400).
+fn read_only_will_do(kind: std::io::ErrorKind) -> bool {
+    matches!(kind, std::io::ErrorKind::PermissionDenied | std::io::ErrorKind::ReadOnlyFilesystem)
 }
 
 fn open_error(key: &str, e: &std::io::Error) -> Error {
@@ -343,6 +347,7 @@ mod tests {
         let dir = tempfile::tempdir().unwrap();
         std::fs::write(dir.path().join("obj"), (0u8..32).collect::<Vec<_>>()).unwrap();
         let m = memory(dir.path());
+        assert!(m.enabled());
         m.register("r", "/obj", 8, 16).unwrap();
         let r = m.region("points", &at("r", 0, 4)).unwrap();
         assert_eq!(r.read("points", &at("r", 0, 4)).unwrap(), vec![8, 9, 10, 11]);
@@ -368,7 +373,8 @@ mod tests {
         let m = memory(dir.path());
         assert_eq!(field_of(m.register("r", "/missing", 0, 4)), "key");
         assert_eq!(field_of(m.register("r", "/link", 0, 4)), "key", "a symbolic link is not followed");
-        assert_eq!(field_of(m.register("r", "/sub", 0, 4)), "key");
+        let e = m.register("r", "/sub", 0, 4).unwrap_err();
+        assert!(e.to_string().contains("cannot be opened"), "a directory is not opened read-only instead: {e}");
         assert_eq!(field_of(m.register("r", "/../obj", 0, 4)), "key");
         assert_eq!(field_of(m.register("r", "/obj", 8, 9)), "byte_size");
         assert_eq!(field_of(m.register("r", "/obj", 0, 0)), "byte_size");
@@ -383,6 +389,36 @@ mod tests {
         m.register("c", "/obj", 0, 4).unwrap();
         m.unregister("").unwrap();
         assert!(m.status("").unwrap().is_empty());
+    }
+
+    #[test]
+    fn writes_fill_their_span_and_the_object_to_its_end_exactly() {
+        let dir = tempfile::tempdir().unwrap();
+        std::fs::write(dir.path().join("obj"), [0u8; 16]).unwrap();
+        let m = memory(dir.path());
+        m.register("r", "/obj", 8, 8).unwrap();
+        let r = m.region("scores", &at("r", 0, 8)).unwrap();
+        r.write("scores", &at("r", 0, 8), &[1; 8]).unwrap();
+        r.write("scores", &at("r", 6, 2), &[2; 2]).unwrap();
+        assert_eq!(std::fs::read(dir.path().join("obj")).unwrap()[8..], [1, 1, 1, 1, 1, 1, 2, 2]);
+    }
+
+    #[test]
+    fn an_object_the_server_may_not_write_is_opened_read_only_and_errors_say_why() {
+        use std::io::ErrorKind;
+        assert!(read_only_will_do(ErrorKind::PermissionDenied) && read_only_will_do(ErrorKind::ReadOnlyFilesystem));
+        assert!(!read_only_will_do(ErrorKind::NotFound) && !read_only_will_do(ErrorKind::IsADirectory));
+        let dir = tempfile::tempdir().unwrap();
+        let m = memory(dir.path());
+        let e = m.register("r", "/missing", 0, 4).unwrap_err();
+        assert!(e.to_string().contains("create it (shm_open) before registering"), "{e}");
+        let region = Region {
+            status: RegionStatus { name: "r".into(), key: "/obj".into(), offset: 0, byte_size: 4 },
+            file: File::open(dir.path()).unwrap(),
+            writable: false,
+        };
+        let e = region.write("scores", &at("r", 0, 4), &[0; 4]).unwrap_err();
+        assert!(e.to_string().contains("read-only"), "{e}");
     }
 
     #[test]

@@ -220,6 +220,34 @@ mod tests {
     }
 
     #[test]
+    fn pixel_rectangles_are_read_row_by_row_from_their_place() {
+        let dir = tempfile::tempdir().unwrap();
+        // a 4×3 image after 5 bytes of something else; pixel (x, y) is [10y + x, 100 + 10y + x, 200]
+        let mut bytes = vec![7u8; 5];
+        for y in 0..3u8 {
+            for x in 0..4u8 {
+                bytes.extend([10 * y + x, 100 + 10 * y + x, 200]);
+            }
+        }
+        std::fs::write(dir.path().join("img"), &bytes).unwrap();
+        let m = SystemSharedMemory::new(SharedMemoryConfig { enabled: true, dir: dir.path().into(), max_regions: 1 });
+        m.register("px", "/img", 0, bytes.len() as u64).unwrap();
+        let at = ShmRef { region: "px".into(), byte_size: 36, offset: 5 };
+        let shared = SharedInput { name: "image_rgb".into(), datatype: DataType::U8, shape: vec![3, 4, 3], at };
+        let pixels = read_inputs(&m, vec![shared], 64).unwrap().pixels.unwrap();
+        let rect = |x0, y0, x1, y1| PixelRect { x0, y0, x1, y1 };
+        let expect = |r: PixelRect| -> Vec<u8> {
+            (r.y0..r.y1)
+                .flat_map(|y| (r.x0..r.x1).flat_map(move |x| [(10 * y + x) as u8, (100 + 10 * y + x) as u8, 200]))
+                .collect()
+        };
+        for r in [rect(1, 1, 3, 3), rect(0, 1, 4, 3), rect(2, 0, 3, 1), rect(0, 0, 4, 3), rect(3, 2, 4, 3)] {
+            assert_eq!(pixels.read_rect(r).unwrap(), expect(r), "{r:?}");
+        }
+        assert_eq!(pixels.read_rect(rect(2, 1, 2, 3)).unwrap(), Vec::<u8>::new(), "no column");
+    }
+
+    #[test]
     fn outputs_are_written_to_held_regions_with_the_bytes_written() {
         let dir = tempfile::tempdir().unwrap();
         let m = memory(dir.path());
