@@ -100,7 +100,11 @@ pub async fn infer(state: &AppState, ticket: &Ticket, req: InferRequest) -> Resu
     let mut inputs = req.inputs;
     let mut shared_pixels = None;
     if !req.shared_inputs.is_empty() {
-        let shared = shared_tensors::read_inputs(&state.shared_memory, req.shared_inputs, state.body_limit)?;
+        // Positioned reads of up to --body-limit bytes: off the async executor, as a body's parse.
+        let (shm, limit) = (state.shared_memory.clone(), state.body_limit);
+        let shared = tokio::task::spawn_blocking(move || shared_tensors::read_inputs(&shm, req.shared_inputs, limit))
+            .await
+            .map_err(|e| Error::Runtime(format!("reading shared memory failed: {e}")))??;
         inputs.extend(shared.tensors);
         shared_pixels = shared.pixels;
     }
