@@ -639,6 +639,7 @@ mod tests {
         };
         let ok = open_camera(ImageInput { rows: rows(640, 480), ..Default::default() }, &c).unwrap();
         assert!(matches!(ok, CameraImage::Rows(_)) && ok.usable());
+        assert!(!CameraImage::Absent.usable() && !CameraImage::Undecodable("x".into()).usable());
         let e = open_camera(ImageInput { rows: rows(320, 480), ..Default::default() }, &c).err().unwrap();
         assert_eq!(e.field_name(), Some("image_rgb.width/height"));
         let both = ImageInput { rows: rows(640, 480), raw: Some(vec![0xFF, 0xD8]), ..Default::default() };
