@@ -1154,6 +1154,7 @@ mod tests {
         let mut both = small(replace(valid(), rgb(&[2, 3, 3], TensorData::U8(px))));
         both.push(t("image", DataType::Bytes, &[1], TensorData::Bytes(vec![vec![0xFF, 0xD8]])));
         assert_eq!(field_of(frame_from_inputs(both, None)), "image_rgb");
+        assert_eq!(integers(&t("image_size", DataType::U8, &[2], TensorData::U8(vec![3, 2]))).unwrap(), vec![3, 2]);
         assert_eq!(tensor_field("image_rgb.width/height"), "image_rgb");
         assert_eq!(tensor_field("image_rgb.b64"), "image_rgb");
     }
