@@ -12,6 +12,7 @@ use posefuse::frame::{Box3d, CameraCalibration, Frame};
 use posefuse::geometry::{BoxFrame, Camera};
 use posefuse::pipeline::PointFrame;
 use posefuse::pipeline::{from_local, prepare_person, CropTransform, PipelineConfig};
+use posefuse::sim::realism::Effect;
 use posefuse::sim::street::Profile;
 use posefuse::sim::{simulate, SimulateOptions};
 
@@ -29,6 +30,7 @@ fn args(out: &Path) -> SimulateOptions {
         requests: Some(1),
         points_cap: 300,
         profile: Profile::Clean,
+        effects: Vec::new(),
         jobs: Some(2),
     }
 }
@@ -87,6 +89,36 @@ fn the_street_profile_is_recorded_reproducible_and_different() {
     let clean_doc: serde_json::Value = serde_json::from_slice(&clean["dataset.json"]).unwrap();
     assert_eq!(clean_doc["profile"], "clean");
     assert_ne!(fa["shards/shard-00000.npz"], clean["shards/shard-00000.npz"]);
+}
+
+#[test]
+fn label_noise_moves_the_3d_labels_and_nothing_else() {
+    let with = |dir: &Path, effects: Vec<Effect>| SimulateOptions {
+        profile: Profile::Street,
+        count: 60,
+        preview: false,
+        effects,
+        ..args(dir)
+    };
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    simulate(with(a.path(), vec![])).unwrap();
+    simulate(with(b.path(), vec![Effect::LabelNoise])).unwrap();
+    let doc: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(b.path().join("dataset.json")).unwrap()).unwrap();
+    assert_eq!(doc["effects"], serde_json::json!(["dress", "mixed-pixels", "label-noise"]));
+    let (mut sa, mut sb) = (open_shard(a.path()), open_shard(b.path()));
+    for k in ["image", "kp3d_visible", "kp3d_occluded", "kp2d_visible"] {
+        assert_eq!(sa.u8(k), sb.u8(k), "{k}");
+    }
+    for k in ["points_xyz", "kp2d", "kp2d_image_true"] {
+        assert_eq!(sa.f32(k), sb.f32(k), "{k}");
+    }
+    let (ta, tb) = (sa.f32("kp3d_vehicle"), sb.f32("kp3d_vehicle"));
+    let d: Vec<f64> = ta.iter().zip(tb.iter()).map(|(x, y)| (y - x) as f64).collect();
+    let rms = (d.iter().map(|e| e * e).sum::<f64>() / d.len() as f64).sqrt();
+    // σ = 1.5 % of heights between 1.0 and 2.0 m: 1.5 to 3 cm per axis.
+    assert!(rms > 0.015 && rms < 0.032, "label error RMS {rms} m");
+    assert!(d.iter().all(|e| e.abs() < 0.15), "no label moves more than five σ");
 }
 
 fn documented_keys() -> Vec<(String, String, String)> {

@@ -9,10 +9,11 @@ use posefuse::sim::body::Anthro;
 use posefuse::sim::body::Part;
 use posefuse::sim::dataset::frame_rng;
 use posefuse::sim::labels::{box_2d, keypoint_visible};
-use posefuse::sim::lidar::{inclinations, scan};
+use posefuse::sim::lidar::{footprint_return, inclinations, nir_reflectivity, scan};
 use posefuse::sim::math::{norm, normalize, sub};
-use posefuse::sim::poses::{pose_person, Activity};
+use posefuse::sim::poses::{pose_person, sample_person, Activity};
 use posefuse::sim::raycast::Shape;
+use posefuse::sim::realism::{Effect, Realism};
 use posefuse::sim::render::{render, RayGrid, Region, Rendered};
 use posefuse::sim::scene::{Ground, ObjectKind, Scene, GROUND};
 use posefuse::sim::scene::{Material, Pattern};
@@ -272,4 +273,117 @@ fn street_lidar_mixes_ranges_at_silhouette_edges_only() {
     assert_eq!(gap_returns(Profile::Clean), 0);
     let mixed = gap_returns(Profile::Street);
     assert!(mixed >= 5, "only {mixed} mixed returns between the person and the wall");
+}
+
+/// A person at `range` m straight ahead and a 1.5 cm thin pole beside them; returns of the scan.
+fn person_and_pole(range: f64, realism: Realism) -> (World, Vec<posefuse::sim::lidar::Return>, u32) {
+    let mut rng = frame_rng(9, 9);
+    let mut w = empty_world();
+    let p =
+        put_person(&mut rng, &mut w.scene, standing(4), [range, 0.0, 0.0], 0.0, ObjectKind::Person { label: Some(0) });
+    let pole = w.scene.add_object(ObjectKind::Pole);
+    let m = w.scene.add_material(Material { base: [0.5; 3], alt: [0.5; 3], pattern: Pattern::Plain });
+    w.scene.add_prim(Shape::capsule([range, 1.0, 0.0], [range, 1.0, 2.0], 0.015), pole, Part::Thing, m);
+    w.persons.push(p);
+    let pts = scan(&w, realism, &mut rng);
+    (w, pts, pole)
+}
+
+#[test]
+fn a_beam_footprint_makes_thin_things_look_thicker() {
+    let pole_points = |realism: Realism| {
+        let (_, pts, pole) = person_and_pole(20.0, realism);
+        let on: Vec<f64> = pts.iter().filter(|r| r.object == pole).map(|r| (r.xyz[1] as f64 - 1.0).abs()).collect();
+        (on.len(), on.iter().copied().fold(0.0, f64::max))
+    };
+    let (n_ray, wide_ray) = pole_points(Realism::from(Profile::Clean));
+    let (n_cone, wide_cone) = pole_points(Realism::of(Profile::Clean, &[Effect::Footprint]));
+    // At 20 m a column is 4.7 cm wide, the footprint 6 cm: the 3 cm pole is caught by more beams,
+    // and its returns lie up to the footprint's radius (3 cm) beside it.
+    assert!(n_cone as f64 > 1.5 * n_ray as f64, "{n_ray} returns from rays, {n_cone} from footprints");
+    assert!(wide_ray < 0.02, "ray returns lie on the pole: {wide_ray}");
+    assert!(wide_cone > 0.025 && wide_cone < 0.05, "footprint returns up to its radius aside: {wide_cone}");
+}
+
+#[test]
+fn a_footprint_across_two_close_surfaces_returns_a_range_between_them() {
+    // A 20 cm deep step seen edge-on at 15 m: footprints across it merge both ranges into one pulse.
+    let mut scene =
+        Scene::new(Ground { road_half: 6.0, asphalt: [0.1; 3], sidewalk: [0.3; 3], crosswalk: None, seed: 1 });
+    let obj = scene.add_object(ObjectKind::Clutter);
+    let m = scene.add_material(Material { base: [0.5; 3], alt: [0.5; 3], pattern: Pattern::Plain });
+    scene.add_prim(Shape::cuboid([15.0, -1.0, 2.0], [0.2, 2.0, 4.0], 0.0), obj, Part::Thing, m);
+    scene.add_prim(Shape::cuboid([15.2, 1.0, 2.0], [0.2, 2.0, 4.0], 0.0), obj, Part::Thing, m);
+    let cands = [0u32, 1];
+    let o = [0.0, 0.0, 2.0];
+    let ranges: Vec<f64> =
+        (-40..=40).filter_map(|i| footprint_return(&scene, o, 0.0, i as f64 * 2e-5, &cands).map(|h| h.t)).collect();
+    assert_eq!(ranges.len(), 81);
+    let between = ranges.iter().filter(|&&t| t > 14.92 && t < 15.08).count();
+    assert!(between >= 5, "mixed ranges across the step: {ranges:?}");
+    assert!(ranges.iter().all(|&t| t > 14.89 && t < 15.11), "{ranges:?}");
+}
+
+#[test]
+fn dark_surfaces_drop_out_at_range_and_not_up_close() {
+    let returns = |range: f64, effects: &[Effect], albedo: f32| {
+        let mut rng = frame_rng(10, 10);
+        let mut w = empty_world();
+        let p = put_person(
+            &mut rng,
+            &mut w.scene,
+            standing(4),
+            [range, 0.0, 0.0],
+            0.0,
+            ObjectKind::Person { label: Some(0) },
+        );
+        for m in w.scene.materials.iter_mut() {
+            m.base = [albedo; 3];
+        }
+        let object = p.object;
+        w.persons.push(p);
+        scan(&w, Realism::of(Profile::Clean, effects), &mut rng).iter().filter(|r| r.object == object).count() as f64
+    };
+    let kept = |range: f64, albedo: f32| returns(range, &[Effect::Reflectivity], albedo) / returns(range, &[], albedo);
+    assert!(kept(8.0, 0.01) > 0.95, "near dark clothes stay: {}", kept(8.0, 0.01));
+    assert!(kept(40.0, 0.01) < 0.75, "far dark clothes drop: {}", kept(40.0, 0.01));
+    assert!(kept(40.0, 0.6) > kept(40.0, 0.01) + 0.15, "bright clothes return more at 40 m");
+    assert!(nir_reflectivity([0.0; 3]) < nir_reflectivity([0.3; 3]));
+}
+
+#[test]
+fn arms_in_puts_free_arms_against_the_torso_and_hides_pocketed_hands() {
+    let (mut pocketed, mut close_wrists, mut close_without) = (0usize, 0usize, 0usize);
+    let n = 400;
+    for seed in 0..n {
+        let a = Anthro::new(1.7, 1.0, |_| 1.0);
+        let with = sample_person(&mut frame_rng(seed, 2), a.clone(), true);
+        let without = sample_person(&mut frame_rng(seed, 2), a, false);
+        let hands =
+            |m: &posefuse::sim::poses::PersonModel| m.parts.iter().filter(|p| matches!(p.1, Part::Hand(_))).count();
+        assert_eq!(hands(&without), 2);
+        pocketed += usize::from(hands(&with) < 2);
+        // A wrist less than 20 cm out from the body's midline is against the torso (hanging arms
+        // are 20-30 cm out: half a shoulder width and a little abduction).
+        let near_axis = |m: &posefuse::sim::poses::PersonModel| {
+            [5, 6].iter().any(|&k| {
+                let outward = if k == 5 { 1.0 } else { -1.0 };
+                outward * (m.skeleton.keypoints[k][1] - m.skeleton.pelvis[1]) < 0.2
+            })
+        };
+        close_wrists += usize::from(near_axis(&with));
+        close_without += usize::from(near_axis(&without));
+        let mut dressed = with.clone();
+        dress(&mut frame_rng(seed, 3), &mut dressed);
+        for s in 0..2 {
+            if with.busy_hands[s] {
+                let w = with.skeleton.keypoints[5 + s];
+                let items = dressed.parts[with.parts.len()..].iter().filter(|p| p.1 == Part::Accessory);
+                assert!(items.into_iter().all(|(sh, _, _)| norm(sub(sh.bounding_sphere().0, w)) > 0.12), "seed {seed}");
+            }
+        }
+    }
+    // 63 % of persons have free arms, 45 % of those hold them in; 60 % of styles are pockets.
+    assert!((40..=100).contains(&pocketed), "{pocketed}/{n} with a hand in a pocket");
+    assert!(close_wrists > close_without + 50, "{close_wrists} vs {close_without} wrists against the torso");
 }

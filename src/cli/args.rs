@@ -15,6 +15,7 @@ use posefuse::server::ServerConfig;
 use posefuse::service::admission::Sizing;
 use posefuse::service::heading_stage::{Refine, AGREE_DEG, SETTLE_DEG};
 use posefuse::service::limits::FrameLimits;
+use posefuse::sim::realism::Effect;
 use posefuse::sim::street::Profile;
 use posefuse::sim::SimulateOptions;
 
@@ -319,6 +320,10 @@ pub struct SimulateArgs {
     /// hand, mixed-pixel LiDAR returns at silhouette edges).
     #[arg(long, value_enum, default_value_t = Profile::Clean)]
     pub profile: Profile,
+    /// Realism effects to add to the profile's, comma-separated (docs/DATA.md, "Realism against
+    /// Waymo's anchors"), to measure one cause at a time.
+    #[arg(long, value_enum, value_delimiter = ',')]
+    pub effects: Vec<Effect>,
     /// Worker threads (default: all cores).
     #[arg(long)]
     pub jobs: Option<usize>,
@@ -336,6 +341,7 @@ impl From<SimulateArgs> for SimulateOptions {
             requests: a.requests,
             points_cap: a.points_cap,
             profile: a.profile,
+            effects: a.effects,
             jobs: a.jobs,
         }
     }

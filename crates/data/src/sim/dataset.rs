@@ -18,8 +18,8 @@ use rand_chacha::ChaCha8Rng;
 use super::labels::{label_person, PersonLabels};
 use super::lidar::{scan, Return};
 use super::math::{hash, V3};
+use super::realism::{Effect, Realism};
 use super::render::{render, Region};
-use super::street::Profile;
 use super::world::{lidar_range, sample_world, World, LIDAR_ORIGIN};
 use posefuse_core::error::{Error, Result};
 use posefuse_core::frame::{Frame, GroundTruth, Keypoints2d, Keypoints3d, Person, Points, RequestedMode};
@@ -53,6 +53,12 @@ pub struct FrameResult {
 /// The frame's random generator: a function of (seed, index) only.
 pub fn frame_rng(seed: u64, index: usize) -> ChaCha8Rng {
     ChaCha8Rng::seed_from_u64(hash(&[seed, index as u64]))
+}
+
+/// The frame's own stream for the 3D labels' noise, apart from the scene's, so the effect moves
+/// nothing but the 3D labels.
+fn label_noise_rng(seed: u64, index: usize) -> ChaCha8Rng {
+    ChaCha8Rng::seed_from_u64(hash(&[seed, index as u64, 3]))
 }
 
 pub fn persons_in_frame<R: Rng>(rng: &mut R) -> usize {
@@ -153,12 +159,14 @@ pub fn simulate_frame(
     cfg: &PipelineConfig,
     points_cap: usize,
     near_px: f64,
-    profile: Profile,
+    realism: impl Into<Realism>,
 ) -> Result<FrameResult> {
+    let realism = realism.into();
     let mut rng = frame_rng(seed, index);
     let n = persons_in_frame(&mut rng);
-    let world = sample_world(&mut rng, n, profile)?;
-    let returns: Vec<Return> = scan(&world, profile, &mut rng);
+    let world = sample_world(&mut rng, n, realism)?;
+    let returns: Vec<Return> = scan(&world, realism, &mut rng);
+    let mut noise_rng = label_noise_rng(seed, index);
     let points: Vec<[f32; 3]> = returns.iter().map(|r| r.xyz).collect();
     let cam = &world.camera;
     let calib = cam.to_calibration();
@@ -169,7 +177,10 @@ pub fn simulate_frame(
             .filter(|r| r.object == p.object)
             .map(|r| [r.xyz[0] as f64, r.xyz[1] as f64, r.xyz[2] as f64])
             .collect();
-        if let Some(labels) = label_person(&world, p, &on_person, &mut rng) {
+        if let Some(mut labels) = label_person(&world, p, &on_person, &mut rng) {
+            if realism.has(Effect::LabelNoise) {
+                labels = labels.with_3d_noise(p.model.anthro.height, &mut noise_rng);
+            }
             labelled.push((li, p, labels, on_person.len()));
         }
     }
@@ -201,7 +212,7 @@ pub fn simulate_frame(
                 box_3d: p.box3d,
                 ground_truth: Some(GroundTruth {
                     keypoints_3d: Some(Keypoints3d {
-                        xyz: p.keypoints.to_vec(),
+                        xyz: labels.xyz_3d.to_vec(),
                         visible: labels.visible_3d.to_vec(),
                         occluded: labels.occluded_3d.to_vec(),
                     }),
@@ -258,8 +269,8 @@ fn make_sample(
         kp2d_visible: labels.visible_2d.map(u8::from),
         kp2d_occluded: labels.occluded_2d.map(u8::from),
         kp2d_image_true: labels.uv_true.map(f32x),
-        kp3d: p.keypoints.map(|k| f32x(to_local(bf, k, cfg))),
-        kp3d_vehicle: p.keypoints.map(f32x),
+        kp3d: labels.xyz_3d.map(|k| f32x(to_local(bf, k, cfg))),
+        kp3d_vehicle: labels.xyz_3d.map(f32x),
         kp3d_visible: labels.visible_3d.map(u8::from),
         kp3d_occluded: labels.occluded_3d.map(u8::from),
         box3d: f32x(b.to_row()),

@@ -26,6 +26,9 @@ use posefuse_core::keypoints::K;
 pub const LABEL_NOISE_FRACTION: f64 = 0.015;
 /// ...capped at this many image pixels.
 pub const LABEL_NOISE_CAP_PX: f64 = 4.0;
+/// `label-noise` effect: σ of the 3D keypoint labels' error per axis, as a fraction of the person's
+/// height (the 2D labels' fraction: the same labeller's hand in both).
+pub const LABEL_NOISE_3D_FRACTION: f64 = 0.015;
 /// A keypoint counts as seen by the LiDAR (for 3D visibility) with a person return this close.
 pub const LIDAR_SUPPORT_M: f64 = 0.25;
 
@@ -43,6 +46,21 @@ pub struct PersonLabels {
     /// Neither seen by the camera nor supported by a LiDAR return (labelled, occluded).
     pub occluded_3d: [bool; K],
     pub box2d: Box2d,
+    /// The 3D keypoint labels (vehicle frame): the joints themselves unless labelled with noise.
+    pub xyz_3d: [V3; K],
+}
+
+impl PersonLabels {
+    /// Adds a labeller's 3D error (`label-noise`): isotropic, σ = [`LABEL_NOISE_3D_FRACTION`] of
+    /// the person's height per axis.
+    pub fn with_3d_noise<R: Rng>(mut self, height: f64, rng: &mut R) -> PersonLabels {
+        if let Ok(n) = Normal::new(0.0, LABEL_NOISE_3D_FRACTION * height) {
+            for k in self.xyz_3d.iter_mut() {
+                *k = [k[0] + n.sample(rng), k[1] + n.sample(rng), k[2] + n.sample(rng)];
+            }
+        }
+        self
+    }
 }
 
 /// Whether keypoint `k` of `p` is seen by the camera (the rule in the module docs).
@@ -119,5 +137,14 @@ pub fn label_person<R: Rng>(
     let seen_3d = visible_3d.iter().any(|&v| v);
     let occluded_2d = std::array::from_fn(|k| seen_2d && in_image[k] && !visible_2d[k]);
     let occluded_3d = visible_3d.map(|v| seen_3d && !v);
-    Some(PersonLabels { uv_true, uv_label, visible_2d, occluded_2d, visible_3d, occluded_3d, box2d })
+    Some(PersonLabels {
+        uv_true,
+        uv_label,
+        visible_2d,
+        occluded_2d,
+        visible_3d,
+        occluded_3d,
+        box2d,
+        xyz_3d: p.keypoints,
+    })
 }

@@ -6,8 +6,8 @@ use rand::Rng;
 use rand_distr::{Distribution, Normal};
 
 use super::math::{dot, madd, norm, sub, V3};
-use super::scene::Scene;
-use super::street::Profile;
+use super::realism::{Effect, Realism};
+use super::scene::{Hit, Scene};
 use super::world::World;
 
 pub const BEAMS: usize = 64;
@@ -21,6 +21,22 @@ const BOTTOM_DEG: f64 = -17.6;
 /// edge.
 const MIXED_OFFSET_RAD: f64 = std::f64::consts::PI / COLUMNS as f64;
 const MIXED_GAP_M: f64 = 0.3;
+/// `footprint` effect: full divergence of the beam (radians). Waymo does not publish its own;
+/// 3 mrad is the order of automotive spinning LiDARs, a little more than the column step
+/// (2.4 mrad), so neighbouring footprints overlap as on real sensors.
+pub const FOOTPRINT_RAD: f64 = 0.003;
+/// Weights of the footprint's samples: the centre, then four points on its edge (a Gaussian
+/// beam's core carries most of the light).
+const FOOTPRINT_WEIGHTS: [f64; 5] = [0.4, 0.15, 0.15, 0.15, 0.15];
+/// A surface returns a pulse when it catches at least this share of the footprint's light.
+const FOOTPRINT_DETECT: f64 = 0.15;
+/// Surfaces closer than this in range merge into one pulse, reported at their light-weighted
+/// mean range (a mixed pixel).
+const PULSE_MERGE_M: f64 = 0.3;
+/// `reflectivity` effect: range (m) at which a 10 % reflective surface at normal incidence is
+/// detected half of the time (assumed; the order 64-beam sensors are specified for).
+const REFLECTIVITY_HALF_RANGE_M: f64 = 50.0;
+
 /// Lateral margin (m) of each window beyond the person's footprint.
 pub const WINDOW_MARGIN_M: f64 = 1.5;
 
@@ -109,7 +125,8 @@ fn overlaps_window(scene: &Scene, i: usize, o: V3, az_lo: f64, az_hi: f64, e_lo:
 }
 
 /// Scans the windows around the world's labelled persons. Deterministic given `rng`.
-pub fn scan<R: Rng>(world: &World, profile: Profile, rng: &mut R) -> Vec<Return> {
+pub fn scan<R: Rng>(world: &World, realism: impl Into<Realism>, rng: &mut R) -> Vec<Return> {
+    let realism = realism.into();
     let incl = inclinations();
     let o = world.lidar_origin;
     let scene = &world.scene;
@@ -140,7 +157,12 @@ pub fn scan<R: Rng>(world: &World, profile: Profile, rng: &mut R) -> Vec<Return>
                 }
                 done[cell] = true;
                 let d = beam_direction(inc, az);
-                let Some(hit) = scene.cast(o, d, &cands, MAX_RANGE) else {
+                let hit = if realism.has(Effect::Footprint) {
+                    footprint_return(scene, o, inc, az, &cands)
+                } else {
+                    scene.cast(o, d, &cands, MAX_RANGE)
+                };
+                let Some(hit) = hit else {
                     continue;
                 };
                 let grazing = dot(hit.normal, d).abs();
@@ -148,8 +170,11 @@ pub fn scan<R: Rng>(world: &World, profile: Profile, rng: &mut R) -> Vec<Return>
                 if rng.random_bool(p_drop.min(1.0)) {
                     continue;
                 }
+                if realism.has(Effect::Reflectivity) && !rng.random_bool(detection_probability(scene, &hit, grazing)) {
+                    continue;
+                }
                 let mut t = hit.t;
-                if profile == Profile::Street {
+                if realism.has(Effect::MixedPixels) && !realism.has(Effect::Footprint) {
                     let side = if rng.random_bool(0.5) { 1.0 } else { -1.0 };
                     let aside = scene.cast(o, beam_direction(inc, az + side * MIXED_OFFSET_RAD), &cands, MAX_RANGE);
                     match aside {
@@ -171,4 +196,57 @@ pub fn scan<R: Rng>(world: &World, profile: Profile, rng: &mut R) -> Vec<Return>
         }
     }
     out
+}
+
+/// The first return of a beam with a footprint: the nearest surface that catches enough of its
+/// light, at the light-weighted range of the surfaces merged into that pulse, reported along the
+/// beam's axis (so a limb the footprint's edge touches appears where the axis points). The hit's
+/// surface is the merged sample nearest the axis. Replaces the mixed-pixel rule.
+pub fn footprint_return(scene: &Scene, o: V3, inc: f64, az: f64, cands: &[u32]) -> Option<Hit> {
+    let h = 0.5 * FOOTPRINT_RAD;
+    let offsets = [(0.0, 0.0), (h, 0.0), (-h, 0.0), (0.0, h), (0.0, -h)];
+    let mut hits: Vec<(f64, Hit)> = offsets
+        .iter()
+        .zip(FOOTPRINT_WEIGHTS)
+        .filter_map(|(&(da, de), w)| {
+            scene.cast(o, beam_direction(inc + de, az + da / inc.cos()), cands, MAX_RANGE).map(|hit| (w, hit))
+        })
+        .collect();
+    // Stable: among equal ranges the centre (listed first) stays first.
+    hits.sort_by(|a, b| a.1.t.total_cmp(&b.1.t));
+    let mut i = 0;
+    while i < hits.len() {
+        let start = hits[i].1.t;
+        let j = hits[i..].iter().position(|(_, h)| h.t - start > PULSE_MERGE_M).map_or(hits.len(), |n| i + n);
+        let pulse = &hits[i..j];
+        let light: f64 = pulse.iter().map(|(w, _)| w).sum();
+        if light >= FOOTPRINT_DETECT {
+            let t = pulse.iter().map(|(w, h)| w * h.t).sum::<f64>() / light;
+            let core = pulse.iter().max_by(|a, b| a.0.total_cmp(&b.0)).map(|(_, h)| *h)?;
+            return Some(Hit { t, ..core });
+        }
+        i = j;
+    }
+    None
+}
+
+/// Probability that a surface returns enough light to be detected: the received power goes with
+/// reflectivity × cos(incidence) / range², and detection is certain well above the half-range
+/// power and rare well below it.
+fn detection_probability(scene: &Scene, hit: &Hit, cos_incidence: f64) -> f64 {
+    let albedo = match hit.prim {
+        Some(p) => scene.materials[scene.prims[p as usize].material as usize].base,
+        None => scene.ground.asphalt,
+    };
+    let rho = nir_reflectivity(albedo);
+    let power = rho * cos_incidence * (REFLECTIVITY_HALF_RANGE_M / hit.t.max(0.1)).powi(2);
+    let half = 0.1 / std::f64::consts::LN_2;
+    (1.0 - (-power / half).exp()).clamp(0.0, 1.0)
+}
+
+/// Near-infrared reflectivity of a surface from its linear-RGB albedo: dark fabrics stay dark
+/// (about 5 %), skin and light fabrics reflect more in the near infrared than they look.
+pub fn nir_reflectivity(albedo: [f32; 3]) -> f64 {
+    let luma = 0.2126 * albedo[0] as f64 + 0.7152 * albedo[1] as f64 + 0.0722 * albedo[2] as f64;
+    0.05 + 0.7 * luma.clamp(0.0, 1.0)
 }

@@ -8,6 +8,7 @@ pub mod math;
 pub mod poses;
 pub mod preview;
 pub mod raycast;
+pub mod realism;
 pub mod render;
 pub mod scene;
 pub mod stats;
@@ -54,6 +55,8 @@ pub struct SimulateOptions {
     /// `clean` (tight clothing, empty hands, clean returns) or `street` (loose clothing, things in
     /// hand, mixed-pixel LiDAR returns at silhouette edges).
     pub profile: street::Profile,
+    /// Realism effects added to the profile's own (docs/DATA.md, "Realism against Waymo's anchors").
+    pub effects: Vec<realism::Effect>,
     /// Worker threads (default: all cores).
     pub jobs: Option<usize>,
 }
@@ -69,6 +72,7 @@ pub fn simulate(args: SimulateOptions) -> crate::error::Result<()> {
     cfg.validate().map_err(|e| crate::invalid!("--image-size {}: {e}", args.image_size))?;
     crate::ensure!(args.count > 0, "--count must be positive");
     crate::ensure!(args.points_cap > 0, "--points-cap must be positive");
+    let realism = realism::Realism::of(args.profile, &args.effects);
     let requests = args.requests.unwrap_or(if args.count <= 1000 { usize::MAX } else { 200 });
     let pool =
         rayon::ThreadPoolBuilder::new().num_threads(args.jobs.unwrap_or(0)).build().context("the worker threads")?;
@@ -95,7 +99,7 @@ pub fn simulate(args: SimulateOptions) -> crate::error::Result<()> {
         let batch: Vec<crate::error::Result<FrameResult>> = pool.install(|| {
             (next_frame..next_frame + n_frames)
                 .into_par_iter()
-                .map(|i| Ok(simulate_frame(args.seed, i, i < requests, &cfg, args.points_cap, near, args.profile)?))
+                .map(|i| Ok(simulate_frame(args.seed, i, i < requests, &cfg, args.points_cap, near, realism)?))
                 .collect()
         });
         next_frame += n_frames;
@@ -167,6 +171,7 @@ fn write_dataset_json(
     let doc = serde_json::json!({
         "version": SIM_VERSION,
         "profile": args.profile,
+        "effects": realism::Realism::of(args.profile, &args.effects).effects(),
         "seed": args.seed,
         "count": args.count,
         "image_size": cfg.image_size,

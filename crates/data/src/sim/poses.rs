@@ -90,6 +90,8 @@ pub struct PersonModel {
     pub activity: Activity,
     pub skeleton: Skeleton,
     pub parts: Vec<(Shape, Part, Slot)>,
+    /// Hands placed in a pocket, crossed or behind the back: they hold nothing else.
+    pub busy_hands: [bool; 2],
 }
 
 fn n<R: Rng>(rng: &mut R, mean: f64, sd: f64) -> f64 {
@@ -144,13 +146,76 @@ fn gait(phi: f64, run: f64, stride: f64) -> Pose {
 }
 
 /// Samples the activity and pose of one person (body frame).
-pub fn sample_person<R: Rng>(rng: &mut R, anthro: Anthro) -> PersonModel {
+/// With `arms_in` (the `arms-in` effect), some free arms are held against the torso.
+pub fn sample_person<R: Rng>(rng: &mut R, anthro: Anthro, arms_in: bool) -> PersonModel {
     let activity = Activity::sample(rng);
-    pose_person(rng, anthro, activity)
+    pose_person_with(rng, anthro, activity, arms_in)
 }
 
 /// Samples a pose of the given activity (body frame).
 pub fn pose_person<R: Rng>(rng: &mut R, anthro: Anthro, activity: Activity) -> PersonModel {
+    pose_person_with(rng, anthro, activity, false)
+}
+
+/// Share of persons with free arms (walking, standing, waving, phone) who hold
+/// them against the torso under the `arms-in` effect.
+const ARMS_IN: f64 = 0.45;
+
+/// How a person holds arms against the torso.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+enum ArmsIn {
+    /// Hands in the front pockets: the hand disappears, the wrist sits at the hip.
+    Pockets,
+    /// Forearms folded across the chest (standing only).
+    Crossed,
+    /// Hands clasped behind the back.
+    Behind,
+    /// Arms hanging close to the body with a small swing.
+    Close,
+}
+
+fn arms_in_style<R: Rng>(rng: &mut R, activity: Activity) -> ArmsIn {
+    match rng.random_range(0..10) {
+        0..=3 => ArmsIn::Pockets,
+        4 | 5 if activity == Activity::Standing => ArmsIn::Crossed,
+        4 | 5 => ArmsIn::Pockets,
+        6 => ArmsIn::Behind,
+        _ => ArmsIn::Close,
+    }
+}
+
+/// Puts arm `s` (0 left, 1 right) against the torso in `style`.
+fn arm_in<R: Rng>(rng: &mut R, style: ArmsIn, s: usize, limb: &mut Limb) {
+    let sign = if s == 0 { 1.0 } else { -1.0 };
+    *limb = match style {
+        ArmsIn::Pockets => Limb::Angles {
+            flex: rng.random_range(0.0..0.12),
+            abd: rng.random_range(0.0..0.06),
+            bend: rng.random_range(0.45..0.8),
+            toward: [1.0, -0.2 * sign, 0.0],
+        },
+        ArmsIn::Crossed => Limb::Angles {
+            flex: rng.random_range(0.3..0.55),
+            abd: rng.random_range(0.03..0.12),
+            bend: rng.random_range(1.9..2.3),
+            toward: [0.5, -sign, 0.3],
+        },
+        ArmsIn::Behind => Limb::Angles {
+            flex: rng.random_range(-0.45..-0.25),
+            abd: rng.random_range(0.03..0.1),
+            bend: rng.random_range(1.0..1.5),
+            toward: [-0.3, -sign, 0.0],
+        },
+        ArmsIn::Close => match *limb {
+            Limb::Angles { flex, bend, toward, .. } => {
+                Limb::Angles { flex: 0.4 * flex, abd: rng.random_range(0.0..0.04), bend, toward }
+            }
+            reach => reach,
+        },
+    };
+}
+
+fn pose_person_with<R: Rng>(rng: &mut R, anthro: Anthro, activity: Activity, arms_in: bool) -> PersonModel {
     let a = &anthro;
     let h = a.height;
     let phi = rng.random_range(0.0..std::f64::consts::TAU);
@@ -281,12 +346,28 @@ pub fn pose_person<R: Rng>(rng: &mut R, anthro: Anthro, activity: Activity) -> P
             p
         }
     };
+    let mut busy_hands = [false; 2];
+    let mut pocketed = [false; 2];
+    let free = matches!(activity, Activity::Walking | Activity::Standing | Activity::Waving | Activity::Phone);
+    if arms_in && free && rng.random_bool(ARMS_IN) {
+        let style = arms_in_style(rng, activity);
+        let one = style == ArmsIn::Pockets && rng.random_bool(0.3);
+        let first = rng.random_range(0..2usize);
+        for s in 0..2 {
+            if !one || s == first {
+                arm_in(rng, style, s, &mut pose.arms[s]);
+                busy_hands[s] = style != ArmsIn::Close;
+                pocketed[s] = style == ArmsIn::Pockets;
+            }
+        }
+    }
     match activity {
         Activity::Waving => {
             let both = rng.random_bool(0.3);
             let first = rng.random_range(0..2usize);
             for sd in 0..2 {
                 if sd == first || both {
+                    (busy_hands[sd], pocketed[sd]) = (false, false);
                     pose.arms[sd] = Limb::Angles {
                         flex: rng.random_range(-0.2..0.8),
                         abd: rng.random_range(1.6..2.9),
@@ -301,6 +382,7 @@ pub fn pose_person<R: Rng>(rng: &mut R, anthro: Anthro, activity: Activity) -> P
             let first = rng.random_range(0..2usize);
             for sd in 0..2 {
                 if sd == first || both {
+                    (busy_hands[sd], pocketed[sd]) = (false, false);
                     let y = if sd == 0 { 0.4 } else { -0.4 };
                     pose.arms[sd] = Limb::Angles {
                         flex: rng.random_range(0.2..0.6),
@@ -322,6 +404,7 @@ pub fn pose_person<R: Rng>(rng: &mut R, anthro: Anthro, activity: Activity) -> P
     let mut parts: Vec<(Shape, Part, Slot)> = skeleton
         .shapes(a)
         .into_iter()
+        .filter(|(_, part)| !matches!(part, Part::Hand(s) if pocketed[*s]))
         .map(|(sh, part)| {
             let slot = match part {
                 Part::Head => Slot::Head,
@@ -351,5 +434,5 @@ pub fn pose_person<R: Rng>(rng: &mut R, anthro: Anthro, activity: Activity) -> P
         extra.push((Shape::ellipsoid(c, [back, [0.0, 1.0, 0.0], skeleton.spine], [0.11, 0.16, 0.22]), Slot::Gear));
     }
     parts.extend(extra.into_iter().map(|(s, slot)| (s, Part::Accessory, slot)));
-    PersonModel { anthro, activity, skeleton, parts }
+    PersonModel { anthro, activity, skeleton, parts, busy_hands }
 }

@@ -10,6 +10,7 @@ use super::body::Part;
 use super::math::{add, madd, normalize, scale, sub, V3};
 use super::poses::{Activity, PersonModel, Slot};
 use super::raycast::Shape;
+use super::realism::Effect;
 
 /// How much of the street's mess the simulator renders (`posefuse simulate --profile`).
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
@@ -21,6 +22,16 @@ pub enum Profile {
     Clean,
     /// Loose jackets and coats, hand-held items and shoulder bags, mixed-pixel LiDAR returns.
     Street,
+}
+
+impl Profile {
+    /// The realism effects the profile turns on.
+    pub fn effects(self) -> &'static [Effect] {
+        match self {
+            Profile::Clean => &[],
+            Profile::Street => &[Effect::Dress, Effect::MixedPixels],
+        }
+    }
 }
 
 /// Share of persons in a loose jacket or coat (sleeves over the wrist, wider trunk).
@@ -36,7 +47,7 @@ pub fn dress<R: Rng>(rng: &mut R, m: &mut PersonModel) {
     if rng.random_bool(LOOSE_CLOTHING) {
         loosen(rng, m);
     }
-    let free = [0, 1].map(|s| hands_free(m.activity) && !raised(m, s));
+    let free = [0, 1].map(|s| hands_free(m.activity) && !raised(m, s) && !m.busy_hands[s]);
     if free.iter().any(|&f| f) && rng.random_bool(HOLDING) {
         let both = free[0] && free[1] && rng.random_bool(0.2);
         let first = if free[0] && free[1] { rng.random_range(0..2usize) } else { usize::from(!free[0]) };

@@ -10,8 +10,9 @@ use super::body::{Anthro, Part, Skeleton};
 use super::math::{add, dot, norm, rot_z, sub, V3};
 use super::poses::{sample_person, Activity, PersonModel, Slot};
 use super::raycast::Shape;
+use super::realism::{Effect, Realism};
 use super::scene::{Ground, Material, ObjectKind, Pattern, Scene};
-use super::street::{dress, Profile};
+use super::street::dress;
 use posefuse_core::error::Result;
 use posefuse_core::frame::{Box3d, CameraCalibration};
 use posefuse_core::geometry::Camera;
@@ -396,11 +397,11 @@ fn place_person<R: Rng>(
     camera: &Camera,
     kind: ObjectKind,
     at: Option<(f64, f64)>,
-    profile: Profile,
+    realism: Realism,
 ) -> Option<PlacedPerson> {
     let anthro = Anthro::sample(rng);
-    let mut model = sample_person(rng, anthro);
-    if profile == Profile::Street {
+    let mut model = sample_person(rng, anthro, realism.has(Effect::ArmsIn));
+    if realism.has(Effect::Dress) {
         dress(rng, &mut model);
     }
     let fr = footprint_radius(model.activity);
@@ -462,7 +463,8 @@ pub fn put_person<R: Rng>(
 }
 
 /// Samples a frame with `n_labelled` labelled pedestrians (fewer only if placement fails).
-pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize, profile: Profile) -> Result<World> {
+pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize, realism: impl Into<Realism>) -> Result<World> {
+    let realism = realism.into();
     let camera = sample_camera(rng)?;
     let road_half = rng.random_range(4.5..9.0);
     let ground = Ground {
@@ -483,7 +485,7 @@ pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize, profile: Profile) ->
     let mut persons = Vec::new();
     for i in 0..n_labelled {
         if let Some(p) =
-            place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: Some(i) }, None, profile)
+            place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: Some(i) }, None, realism)
         {
             persons.push(p);
         }
@@ -536,7 +538,7 @@ pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize, profile: Profile) ->
                     &camera,
                     ObjectKind::Person { label: None },
                     Some((x, y)),
-                    profile,
+                    realism,
                 )
                 .is_some(),
                 _ => {
@@ -587,7 +589,7 @@ pub fn sample_world<R: Rng>(rng: &mut R, n_labelled: usize, profile: Profile) ->
     }
     for _ in 0..rng.random_range(0..4) {
         let (x, y) = (rng.random_range(4.0..60.0), rng.random_range(-14.0..14.0));
-        place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: None }, Some((x, y)), profile);
+        place_person(rng, &mut scene, &mut feet, &camera, ObjectKind::Person { label: None }, Some((x, y)), realism);
     }
     add_buildings(rng, &mut scene, road_half);
     let look = Look {
