@@ -362,3 +362,18 @@ fn a_seen_person_has_every_3d_keypoint_and_every_2d_keypoint_in_the_image_labell
         assert_eq!(gt.keypoints_2d.as_ref().unwrap().occluded.len(), 13);
     }
 }
+
+#[test]
+fn street_hard_is_street_with_its_three_effects() {
+    let run = |dir: &Path, profile: Profile, effects: Vec<Effect>| {
+        simulate(SimulateOptions { profile, count: 40, preview: false, effects, ..args(dir) }).unwrap();
+        files(dir)
+    };
+    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
+    let hard = run(a.path(), Profile::StreetHard, vec![]);
+    let composed = run(b.path(), Profile::Street, vec![Effect::LabelNoise, Effect::ArmsIn, Effect::Reflectivity]);
+    let doc: serde_json::Value = serde_json::from_slice(&hard["dataset.json"]).unwrap();
+    assert_eq!(doc["profile"], "street-hard");
+    assert_eq!(doc["effects"], serde_json::json!(["dress", "mixed-pixels", "reflectivity", "arms-in", "label-noise"]));
+    assert_eq!(hard["shards/shard-00000.npz"], composed["shards/shard-00000.npz"]);
+}

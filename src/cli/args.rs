@@ -316,8 +316,9 @@ pub struct SimulateArgs {
     /// Most in-box points kept per sample in `points_xyz`/`points_uv` (P in docs/DATA.md).
     #[arg(long, default_value_t = 1024)]
     pub points_cap: usize,
-    /// `clean` (tight clothing, empty hands, clean returns) or `street` (loose clothing, things in
-    /// hand, mixed-pixel LiDAR returns at silhouette edges).
+    /// `clean` (tight clothing, empty hands, clean returns), `street` (loose clothing, things in
+    /// hand, mixed-pixel LiDAR returns at silhouette edges) or `street-hard` (street, arms against
+    /// the torso, dark-surface dropouts, 3D label noise).
     #[arg(long, value_enum, default_value_t = Profile::Clean)]
     pub profile: Profile,
     /// Realism effects to add to the profile's, comma-separated (docs/DATA.md, "Realism against

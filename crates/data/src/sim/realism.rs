@@ -74,5 +74,9 @@ mod tests {
         assert_eq!(r.effects(), [Effect::Dress, Effect::MixedPixels, Effect::Footprint, Effect::LabelNoise]);
         assert!(r.has(Effect::Footprint) && !r.has(Effect::ArmsIn));
         assert_eq!(ALL.len(), Effect::ArmsIn as usize + 2);
+        let hard = Realism::from(Profile::StreetHard);
+        // dataset.json spells the profile as the command line does.
+        assert_eq!(serde_json::to_string(&Profile::StreetHard).ok().as_deref(), Some("\"street-hard\""));
+        assert_eq!(hard, Realism::of(Profile::Street, &[Effect::ArmsIn, Effect::Reflectivity, Effect::LabelNoise]));
     }
 }

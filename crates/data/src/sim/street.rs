@@ -22,6 +22,11 @@ pub enum Profile {
     Clean,
     /// Loose jackets and coats, hand-held items and shoulder bags, mixed-pixel LiDAR returns.
     Street,
+    /// `street` plus the effects that moved the LiDAR-only keypoint profile toward Waymo's
+    /// (docs/DATA.md, "Realism against Waymo's anchors"): arms against the torso, dark surfaces
+    /// dropping out, and 3D label noise.
+    #[serde(rename = "street-hard")]
+    StreetHard,
 }
 
 impl Profile {
@@ -30,6 +35,9 @@ impl Profile {
         match self {
             Profile::Clean => &[],
             Profile::Street => &[Effect::Dress, Effect::MixedPixels],
+            Profile::StreetHard => {
+                &[Effect::Dress, Effect::MixedPixels, Effect::Reflectivity, Effect::ArmsIn, Effect::LabelNoise]
+            }
         }
     }
 }
