@@ -238,8 +238,14 @@ fn detection_probability(scene: &Scene, hit: &Hit, cos_incidence: f64) -> f64 {
         Some(p) => scene.materials[scene.prims[p as usize].material as usize].base,
         None => scene.ground.asphalt,
     };
-    let rho = nir_reflectivity(albedo);
-    let power = rho * cos_incidence * (REFLECTIVITY_HALF_RANGE_M / hit.t.max(0.1)).powi(2);
+    detection_probability_at(nir_reflectivity(albedo), cos_incidence, hit.t)
+}
+
+/// Detection probability of a surface of NIR reflectivity `rho` at `cos_incidence` and `range_m`:
+/// one half for 10 % at normal incidence at `REFLECTIVITY_HALF_RANGE_M`, halving the miss
+/// probability each time the received power grows by that much.
+pub fn detection_probability_at(rho: f64, cos_incidence: f64, range_m: f64) -> f64 {
+    let power = rho * cos_incidence * (REFLECTIVITY_HALF_RANGE_M / range_m.max(0.1)).powi(2);
     let half = 0.1 / std::f64::consts::LN_2;
     (1.0 - (-power / half).exp()).clamp(0.0, 1.0)
 }
@@ -249,4 +255,36 @@ fn detection_probability(scene: &Scene, hit: &Hit, cos_incidence: f64) -> f64 {
 pub fn nir_reflectivity(albedo: [f32; 3]) -> f64 {
     let luma = 0.2126 * albedo[0] as f64 + 0.7152 * albedo[1] as f64 + 0.0722 * albedo[2] as f64;
     0.05 + 0.7 * luma.clamp(0.0, 1.0)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn close(a: f64, b: f64) -> bool {
+        (a - b).abs() < 1e-9
+    }
+
+    #[test]
+    fn a_dark_target_is_missed_half_the_time_at_the_half_range_and_rarely_up_close() {
+        assert!(close(detection_probability_at(0.1, 1.0, 50.0), 0.5));
+        // Half the range: four times the power, the miss probability to the fourth power.
+        assert!(close(detection_probability_at(0.1, 1.0, 25.0), 1.0 - 0.5f64.powi(4)));
+        assert!(close(detection_probability_at(0.2, 1.0, 50.0), 0.75));
+        assert!(close(detection_probability_at(0.1, 0.5, 50.0), 1.0 - 0.5f64.sqrt()));
+        assert!(close(detection_probability_at(0.0, 1.0, 10.0), 0.0));
+        assert!(detection_probability_at(0.05, 1.0, 5.0) > 0.999);
+        // A return at zero range does not divide by zero.
+        assert!(detection_probability_at(0.1, 1.0, 0.0).is_finite());
+    }
+
+    #[test]
+    fn near_infrared_reflectivity_follows_luma_from_five_to_seventy_five_percent() {
+        assert!(close(nir_reflectivity([0.0; 3]), 0.05));
+        assert!(close(nir_reflectivity([1.0; 3]), 0.75));
+        assert!(close(nir_reflectivity([2.0; 3]), 0.75));
+        assert!(close(nir_reflectivity([0.0, 1.0, 0.0]), 0.05 + 0.7 * 0.7152));
+        assert!(close(nir_reflectivity([1.0, 0.0, 0.0]), 0.05 + 0.7 * 0.2126));
+        assert!(close(nir_reflectivity([0.0, 0.0, 1.0]), 0.05 + 0.7 * 0.0722));
+    }
 }
