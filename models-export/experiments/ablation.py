@@ -28,6 +28,7 @@ import torch
 
 from posefuse_train import __version__, evaluate, labels
 from posefuse_train import data as data_mod
+from posefuse_train.camera_net import check_heatmap_size, deconv_layers_for, predicted_heatmap_size
 from posefuse_train.config import CameraNetConfig, PointNetConfig
 from posefuse_train.export import camera_from_checkpoint, export_bundle, export_onnx, measure_latency
 from posefuse_train.fusion import smoothed
@@ -89,6 +90,19 @@ def main(argv=None):
     p.add_argument("--limit-test", type=int)
     p.add_argument("--backbone", default=CameraNetConfig.backbone)
     p.add_argument("--deconv-channels", type=int, default=CameraNetConfig.deconv_channels)
+    p.add_argument(
+        "--heatmap-size",
+        type=int,
+        help="heatmap side H, the model's choice like the smoothing (default: the data's S/4); "
+        "the camera net gets the deconvolutions that make it",
+    )
+    p.add_argument(
+        "--final-shuffle",
+        type=int,
+        default=CameraNetConfig.final_shuffle,
+        help="sub-cells per heatmap cell side from the last 1x1 conv (pixel shuffle); 2 with "
+        "--heatmap-size S/2 keeps the three deconvolutions",
+    )
     p.add_argument("--camera-epochs", type=float, default=TrainCameraConfig.epochs)
     p.add_argument("--camera-lr", type=float, default=TrainCameraConfig.lr)
     p.add_argument("--camera-checkpoint", help="reuse a trained camera net instead of training one")
@@ -160,6 +174,8 @@ def main(argv=None):
         raise SystemExit(f"train and test preprocessing differ:\n{cfg}\n{test_cfg}")
     if a.lidar_noise > 0:
         degrade_lidar(train, test, a.lidar_noise)
+    if a.heatmap_size is not None:
+        cfg = dataclasses.replace(cfg, heatmap_size=a.heatmap_size)
     if a.smoothing_sigma is not None:
         # Smoothing is the model's, not the data's: it goes into the bundle's manifest.
         kernel = 2 * int(np.ceil(a.smoothing_sigma)) + 1
@@ -194,6 +210,10 @@ def main(argv=None):
     if a.camera_checkpoint:
         cam_ckpt = torch.load(a.camera_checkpoint, map_location="cpu", weights_only=False)
         camera = camera_from_checkpoint(cam_ckpt).to(a.device)
+        if a.heatmap_size is None:
+            # the reused net's heatmaps decide the grid the fusion samples
+            cfg = dataclasses.replace(cfg, heatmap_size=predicted_heatmap_size(cfg.image_size, camera.cfg))
+        check_heatmap_size(cfg.image_size, cfg.heatmap_size, camera.cfg)
         cam_cfg = TrainCameraConfig(
             **{k: tuple(v) if isinstance(v, list) else v for k, v in cam_ckpt["train_config"].items()}
         )
@@ -202,7 +222,12 @@ def main(argv=None):
         if Path(a.camera_checkpoint).resolve() != (out / "camera.pt").resolve():
             shutil.copyfile(a.camera_checkpoint, out / "camera.pt")
     else:
-        net_cfg = CameraNetConfig(backbone=a.backbone, deconv_channels=a.deconv_channels)
+        net_cfg = CameraNetConfig(
+            backbone=a.backbone,
+            deconv_channels=a.deconv_channels,
+            deconv_layers=deconv_layers_for(cfg.image_size, cfg.heatmap_size, a.final_shuffle),
+            final_shuffle=a.final_shuffle,
+        )
         camera = train_camera(train, cfg, net_cfg, cam_cfg, a.device, log=log)
         torch.save(checkpoint(camera, cfg, cam_cfg, str(a.train)), out / "camera.pt")
     timings["camera_train_s"] = time.time() - t
@@ -225,6 +250,8 @@ def main(argv=None):
             "config": {
                 "backbone": camera.cfg.backbone,
                 "deconv_channels": camera.cfg.deconv_channels,
+                "deconv_layers": camera.cfg.deconv_layers,
+                "final_shuffle": camera.cfg.final_shuffle,
                 **dataclasses.asdict(cam_cfg),
             },
             "metrics": evaluate.evaluate(cam_pred, test, cfg),

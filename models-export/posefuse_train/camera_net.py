@@ -1,5 +1,7 @@
-"""Camera network: SimpleBaseline (a ResNet backbone, three stride-2 deconvolutions, a 1x1 conv and
-a sigmoid) predicting K keypoint heatmaps at a quarter of the input resolution."""
+"""Camera network: SimpleBaseline (a ResNet backbone of stride 32, stride-2 deconvolutions, a 1x1 conv
+and a sigmoid) predicting K keypoint heatmaps. Three deconvolutions give heatmaps at a quarter of the
+input resolution, as in the paper; a fourth gives half, which is how a small crop still gets a grid
+fine enough to tell neighbouring LiDAR points apart (docs/TRAINING.md, "Heatmap resolution")."""
 
 from __future__ import annotations
 
@@ -63,7 +65,7 @@ BACKBONES = {
 
 
 class ResNet(nn.Module):
-    """Plain ResNet trunk (stride 32), no classifier."""
+    """Plain ResNet trunk (stride BACKBONE_STRIDE), no classifier."""
 
     def __init__(self, name: str):
         super().__init__()
@@ -89,6 +91,36 @@ class ResNet(nn.Module):
         return self.stages(self.stem(x))
 
 
+BACKBONE_STRIDE = 32
+
+
+def predicted_heatmap_size(image_size: int, cfg: CameraNetConfig) -> int:
+    """The side of the heatmaps the net predicts for an S x S crop."""
+    return image_size * 2**cfg.deconv_layers * cfg.final_shuffle // BACKBONE_STRIDE
+
+
+def deconv_layers_for(image_size: int, heatmap_size: int, final_shuffle: int = 1) -> int:
+    """The number of deconvolutions that turn an S x S crop into H x H heatmaps."""
+    for layers in range(1, 6):
+        if image_size * 2**layers * final_shuffle == heatmap_size * BACKBONE_STRIDE:
+            return layers
+    raise ValueError(
+        f"heatmap_size {heatmap_size} must be image_size {image_size} x {final_shuffle} / 2^k, k = 0..4 "
+        f"(a stride-{BACKBONE_STRIDE} backbone and stride-2 deconvolutions)"
+    )
+
+
+def check_heatmap_size(image_size: int, heatmap_size: int, cfg: CameraNetConfig) -> None:
+    """Refuses a pipeline whose heatmap_size is not what the camera net predicts."""
+    if heatmap_size != predicted_heatmap_size(image_size, cfg):
+        raise ValueError(
+            f"heatmap_size {heatmap_size} is not what the camera net predicts for {image_size} px crops "
+            f"with {cfg.deconv_layers} deconvolutions and final_shuffle {cfg.final_shuffle} "
+            f"({predicted_heatmap_size(image_size, cfg)}); set deconv_layers "
+            f"to {deconv_layers_for(image_size, heatmap_size, cfg.final_shuffle)}"
+        )
+
+
 class CameraNet(nn.Module):
     def __init__(self, cfg: CameraNetConfig):
         super().__init__()
@@ -103,7 +135,8 @@ class CameraNet(nn.Module):
             ]
             cin = cfg.deconv_channels
         self.deconv = nn.Sequential(*layers)
-        self.final = nn.Conv2d(cin, K, 1)
+        self.final = nn.Conv2d(cin, K * cfg.final_shuffle**2, 1)
+        self.shuffle = nn.PixelShuffle(cfg.final_shuffle) if cfg.final_shuffle > 1 else nn.Identity()
         self._init()
 
     def _init(self):
@@ -120,7 +153,7 @@ class CameraNet(nn.Module):
         nn.init.constant_(self.final.bias, -4.0)
 
     def logits(self, image: torch.Tensor) -> torch.Tensor:
-        return self.final(self.deconv(self.backbone(image)))
+        return self.shuffle(self.final(self.deconv(self.backbone(image))))
 
     def forward(self, image: torch.Tensor) -> torch.Tensor:
         return torch.sigmoid(self.logits(image))

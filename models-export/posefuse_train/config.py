@@ -68,6 +68,9 @@ class CameraNetConfig:
     backbone: str = "resnet18-w16"  # see camera_net.BACKBONES
     deconv_channels: int = 64
     deconv_layers: int = 3
+    # > 1: the last 1x1 conv predicts final_shuffle² sub-cells per cell, rearranged into a grid that
+    # much finer (sub-pixel convolution): a finer heatmap for the price of a wider 1x1 conv.
+    final_shuffle: int = 1
 
 
 @dataclass

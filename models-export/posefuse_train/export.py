@@ -27,7 +27,7 @@ import onnxruntime as ort
 import torch
 
 from . import __version__
-from .camera_net import CameraNet
+from .camera_net import CameraNet, check_heatmap_size, deconv_layers_for
 from .config import CameraNetConfig, PipelineConfig, PointNetConfig
 from .keypoints import NAMES, WAYMO_TYPES, K
 from .metrics import CONVENTION
@@ -109,8 +109,7 @@ def export_bundle(
     Files are written to a temporary directory first and only moved into place when every parity
     check passed, so a failed export never leaves a half-written bundle behind."""
     s, h, n = pipeline.image_size, pipeline.heatmap_size, pipeline.num_points
-    if s // 4 != h:
-        raise ValueError(f"heatmap_size {h} must be image_size/4 = {s // 4}")
+    check_heatmap_size(s, h, camera.cfg)
     if fusion.cfg.in_features != 3 + K or lidar.cfg.in_features != 3:
         raise ValueError("fusion net must take 3+K features and lidar net 3")
     out_dir = Path(out_dir)
@@ -230,6 +229,10 @@ def main(argv=None):
     p.add_argument("--untrained", action="store_true", help="random weights (for server tests only)")
     p.add_argument("--image-size", type=int, default=64, help="crop side S (untrained bundles)")
     p.add_argument("--backbone", default=CameraNetConfig.backbone, help="camera backbone (untrained)")
+    p.add_argument("--heatmap-size", type=int, help="heatmap side H (untrained; default S/4)")
+    p.add_argument(
+        "--final-shuffle", type=int, default=1, help="the camera net's sub-cells per cell side (untrained)"
+    )
     p.add_argument("--camera", help="camera checkpoint (.pt) of a trained model")
     p.add_argument("--fusion", help="fusion point-net checkpoint (.pt)")
     p.add_argument("--lidar", help="LiDAR-only point-net checkpoint (.pt)")
@@ -240,7 +243,11 @@ def main(argv=None):
     a = p.parse_args(argv)
     if a.untrained:
         pipeline = PipelineConfig.with_image_size(a.image_size)
-        camera, fusion, lidar = untrained_models(pipeline, CameraNetConfig(backbone=a.backbone))
+        if a.heatmap_size:
+            pipeline = dataclasses.replace(pipeline, heatmap_size=a.heatmap_size)
+        layers = deconv_layers_for(pipeline.image_size, pipeline.heatmap_size, a.final_shuffle)
+        cam_cfg = CameraNetConfig(backbone=a.backbone, deconv_layers=layers, final_shuffle=a.final_shuffle)
+        camera, fusion, lidar = untrained_models(pipeline, cam_cfg)
         training, metrics = {"data": None, "config": {"camera": dataclasses.asdict(camera.cfg)}}, None
         trained = False
     else:

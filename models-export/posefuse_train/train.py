@@ -35,7 +35,7 @@ import torch.nn.functional as F
 from tqdm import tqdm
 
 from . import distributed
-from .camera_net import CameraNet
+from .camera_net import CameraNet, check_heatmap_size
 from .config import CameraNetConfig, PipelineConfig, PointNetConfig
 from .fusion import sample_features, smooth_heatmaps
 from .keypoints import FLIP, K
@@ -394,6 +394,7 @@ def train_camera(
     opts: RunOptions | None = None,
 ) -> CameraNet:
     """The camera net from 2D labels. `data`: a dict of arrays or a ShardSet."""
+    check_heatmap_size(pipeline.image_size, pipeline.heatmap_size, net_cfg)
     opts = opts or RunOptions(device=device)
     device, d = opts.device, opts.dist
     gen, rng = seed_everything(cfg.seed)

@@ -122,3 +122,25 @@ def test_cli_sets_the_bundle_version(tmp_path):
         ]
     )
     assert json.loads((out / "manifest.json").read_text())["version"] == "7.1.2"
+
+
+@pytest.mark.parametrize("shuffle", [1, 2])
+def test_cli_writes_a_bundle_with_half_resolution_heatmaps(tmp_path, shuffle):
+    from posefuse_train.export import main
+
+    out = tmp_path / f"h{shuffle}"
+    args = ["--untrained", "--out", str(out), "--image-size", "32", "--heatmap-size", "16"]
+    main([*args, "--final-shuffle", str(shuffle), "--backbone", "resnet18-w16"])
+    m = json.loads((out / "manifest.json").read_text())
+    assert m["preprocessing"]["heatmap_size"] == 16
+    assert m["models"]["camera"]["outputs"]["heatmaps"] == [-1, K, 16, 16]
+    sess = ort.InferenceSession(str(out / m["models"]["camera"]["file"]), providers=["CPUExecutionProvider"])
+    assert sess.run(None, {"image": np.zeros((2, 3, 32, 32), np.float32)})[0].shape == (2, K, 16, 16)
+
+
+def test_a_pipeline_whose_heatmaps_the_camera_does_not_predict_is_refused(tmp_path):
+    cfg = PipelineConfig.with_image_size(32)
+    cfg.heatmap_size = 16  # the small camera net predicts S/4 = 8
+    with pytest.raises(ValueError, match="deconv_layers to 4"):
+        export_bundle(tmp_path / "b", *small_models(cfg), cfg, trained=False)
+    assert not (tmp_path / "b").exists()

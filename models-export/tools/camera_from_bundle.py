@@ -22,7 +22,7 @@ import torch
 from onnx import numpy_helper
 from torch import nn
 
-from posefuse_train.camera_net import CameraNet
+from posefuse_train.camera_net import CameraNet, deconv_layers_for
 from posefuse_train.config import CameraNetConfig, PipelineConfig
 from posefuse_train.train import TrainCameraConfig, checkpoint
 
@@ -105,7 +105,13 @@ def main(argv=None):
     manifest = json.loads((bundle / "manifest.json").read_text())
     pipeline = PipelineConfig.from_dict(manifest["preprocessing"])
     cam = manifest["training"]["config"]["camera"]
-    net_cfg = CameraNetConfig(backbone=cam["backbone"], deconv_channels=cam["deconv_channels"])
+    shuffle = cam.get("final_shuffle", 1)
+    net_cfg = CameraNetConfig(
+        backbone=cam["backbone"],
+        deconv_channels=cam["deconv_channels"],
+        deconv_layers=deconv_layers_for(pipeline.image_size, pipeline.heatmap_size, shuffle),
+        final_shuffle=shuffle,
+    )
     model_path = bundle / manifest["models"]["camera"]["file"]
     net = load_camera(model_path, net_cfg)
     diff = max_difference(net, model_path, pipeline.image_size)

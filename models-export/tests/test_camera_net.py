@@ -1,0 +1,50 @@
+import pytest
+import torch
+
+from posefuse_train.camera_net import CameraNet, check_heatmap_size, deconv_layers_for, predicted_heatmap_size
+from posefuse_train.config import CameraNetConfig
+from posefuse_train.keypoints import K
+
+
+@pytest.mark.parametrize(
+    ("layers", "shuffle", "side"),
+    [(3, 1, 16), (4, 1, 32), (3, 2, 32), (2, 2, 16)],
+)
+def test_the_heatmap_side_is_what_the_config_says(layers, shuffle, side):
+    cfg = CameraNetConfig(deconv_channels=8, deconv_layers=layers, final_shuffle=shuffle)
+    assert predicted_heatmap_size(64, cfg) == side
+    assert deconv_layers_for(64, side, shuffle) == layers
+    with torch.no_grad():
+        assert CameraNet(cfg).eval()(torch.zeros(1, 3, 64, 64)).shape == (1, K, side, side)
+
+
+def test_sub_cells_land_where_pixel_shuffle_puts_them():
+    """Channel k·4 + 2·dy + dx of the last conv is sub-cell (dy, dx) of keypoint k's cells."""
+    net = CameraNet(CameraNetConfig(deconv_channels=8, final_shuffle=2)).eval()
+    with torch.no_grad():
+        net.final.weight.zero_()
+        net.final.bias.copy_(torch.arange(4 * K, dtype=torch.float32) - 100.0)
+        logits = net.logits(torch.zeros(1, 3, 64, 64))[0]
+    for k in (0, 5, K - 1):
+        for dy in (0, 1):
+            for dx in (0, 1):
+                want = k * 4 + 2 * dy + dx - 100.0
+                assert torch.all(logits[k, dy::2, dx::2] == want)
+
+
+def test_a_heatmap_side_no_net_predicts_is_refused():
+    with pytest.raises(ValueError, match="must be image_size 64"):
+        deconv_layers_for(64, 24)
+    with pytest.raises(ValueError, match="predicts for 64 px crops"):
+        check_heatmap_size(64, 32, CameraNetConfig())
+    check_heatmap_size(64, 32, CameraNetConfig(final_shuffle=2))
+
+
+def test_training_refuses_heatmaps_the_net_cannot_predict():
+    from posefuse_train.config import PipelineConfig
+    from posefuse_train.train import TrainCameraConfig, train_camera
+
+    cfg = PipelineConfig.with_image_size(64)
+    cfg.heatmap_size = 32
+    with pytest.raises(ValueError, match="final_shuffle 1"):
+        train_camera(None, cfg, CameraNetConfig(), TrainCameraConfig())
