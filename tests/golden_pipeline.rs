@@ -9,8 +9,8 @@ use std::path::PathBuf;
 use posefuse::frame::Box3d;
 use posefuse::geometry::BoxFrame;
 use posefuse::pipeline::{
-    gaussian_kernel, lift, model_frame, reliability, sample_features, smooth_heatmaps, to_local, PipelineConfig,
-    PointFrame,
+    gaussian_kernel, lift, model_frame, reliability, sample_bilinear, sample_features, smooth_heatmaps, to_local,
+    PipelineConfig, PointFrame,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -72,6 +72,7 @@ fn fusion_smoothing_and_sampling() {
     uv.extend([[2.0, 2.0], [1.99, 6.01], [63.9, 0.0], [-1.0, 70.0], [f32::NAN, f32::NAN]]);
     let smoothed = smooth_heatmaps(&heatmaps, k, h, w, &cfg);
     let features = sample_features(&smoothed, k, h, w, &uv, s);
+    let bilinear = sample_bilinear(&smoothed, k, h, w, &uv, s);
     check(
         "fusion.json",
         json!({
@@ -82,6 +83,7 @@ fn fusion_smoothing_and_sampling() {
             "smoothed": smoothed,
             "uv": uv_json(&uv),
             "features": features,
+            "bilinear_features": bilinear,
         }),
     );
 }

@@ -97,6 +97,11 @@ def main(argv=None):
         "the camera net gets the deconvolutions that make it",
     )
     p.add_argument(
+        "--sampling",
+        choices=["nearest", "bilinear"],
+        help="how points read the smoothed heatmaps (the model's choice; default the data's, nearest)",
+    )
+    p.add_argument(
         "--final-shuffle",
         type=int,
         default=CameraNetConfig.final_shuffle,
@@ -176,6 +181,8 @@ def main(argv=None):
         degrade_lidar(train, test, a.lidar_noise)
     if a.heatmap_size is not None:
         cfg = dataclasses.replace(cfg, heatmap_size=a.heatmap_size)
+    if a.sampling is not None:
+        cfg = dataclasses.replace(cfg, sampling=a.sampling)
     if a.smoothing_sigma is not None:
         # Smoothing is the model's, not the data's: it goes into the bundle's manifest.
         kernel = 2 * int(np.ceil(a.smoothing_sigma)) + 1
@@ -301,7 +308,7 @@ def main(argv=None):
             epochs, steps = net.trained_epochs, len(net.loss_history)
         train_s = time.time() - t
         pred = predict_points(
-            net, test["serve_xyz"], test["serve_uv"], sm_test if fusion else None, cfg.image_size
+            net, test["serve_xyz"], test["serve_uv"], sm_test if fusion else None, cfg
         )
         pred = evaluate.with_fallback(pred, cam_pred, test, cfg)
         metrics = evaluate.evaluate(pred, test, cfg)

@@ -32,7 +32,8 @@ def run_predictions(run: Path, rows: list[str], test: dict, cfg: PipelineConfig,
         ckpt = load_checkpoint(run / f"{row}.pt")
         net = point_from_checkpoint(ckpt).eval()
         fusion = ckpt["train_config"]["fusion"]
-        sm = smoothed(raw, PipelineConfig.from_dict(ckpt["pipeline"])) if fusion else None
-        pred = predict_points(net, test["serve_xyz"], test["serve_uv"], sm, cfg.image_size)
+        row_cfg = PipelineConfig.from_dict(ckpt["pipeline"])
+        sm = smoothed(raw, row_cfg) if fusion else None
+        pred = predict_points(net, test["serve_xyz"], test["serve_uv"], sm, row_cfg)
         preds[row] = evaluate.with_fallback(pred, cam_pred, test, cfg)
     return preds

@@ -84,7 +84,7 @@ def predictions(sess: dict, d: dict, cfg: PipelineConfig, batch: int = 256) -> d
     coordinates), `batch` persons a call."""
     (heat,) = run(sess["camera"], "image", normalize(d["image"], cfg), batch)[:1]
     smoothed = smooth_heatmaps(torch.from_numpy(heat), cfg.smoothing_kernel, cfg.smoothing_sigma)
-    feats = sample_features(smoothed, torch.from_numpy(d["serve_uv"]), cfg.image_size).numpy()
+    feats = sample_features(smoothed, torch.from_numpy(d["serve_uv"]), cfg.image_size, cfg.sampling).numpy()
     fused = np.concatenate([d["serve_xyz"], feats], axis=2).astype(np.float32)
     return {
         "fusion": run(sess["point_fusion"], "points", fused, batch)[0],

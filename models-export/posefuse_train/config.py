@@ -22,6 +22,8 @@ class PipelineConfig:
     heatmap_size: int = 64
     smoothing_kernel: int = 7
     smoothing_sigma: float = 3.0
+    # How a point reads its heatmap cell: "nearest" (the paper) or "bilinear" (sub-cell).
+    sampling: str = "nearest"
     num_points: int = 256
     box_margin: float = 0.15
     rotate_by_heading: bool = True
@@ -56,6 +58,8 @@ class PipelineConfig:
         # when not the nominal one (crates/core/src/pipeline/config.rs).
         if d["frame"] is None:
             del d["frame"]
+        if d["sampling"] == "nearest":
+            del d["sampling"]
         if d["view_origin"] == NOMINAL_LIDAR_ORIGIN:
             del d["view_origin"]
         d["mean"] = [float(x) for x in d["mean"]]

@@ -41,17 +41,41 @@ def cell_index(x: np.ndarray | torch.Tensor, cells: int, image_size: int):
     return np.clip(np.nan_to_num(m, nan=0.0), 0, cells - 1).astype(np.int64)
 
 
-def sample_features(smoothed: torch.Tensor, uv: torch.Tensor, image_size: int) -> torch.Tensor:
-    """smoothed [B,K,H,W], uv [B,N,2] model px -> [B,N,K]; a NaN uv gives zeros."""
+def sample_features(
+    smoothed: torch.Tensor, uv: torch.Tensor, image_size: int, sampling: str = "nearest"
+) -> torch.Tensor:
+    """smoothed [B,K,H,W], uv [B,N,2] model px -> [B,N,K]; a NaN uv gives zeros. `sampling`:
+    "nearest" (the paper's cell) or "bilinear" (between the four cells around the point)."""
     b, k, h, w = smoothed.shape
     finite = torch.isfinite(uv).all(dim=2)  # [B,N]
     safe = torch.where(finite.unsqueeze(2), uv, torch.zeros_like(uv))
-    j = cell_index(safe[..., 0], w, image_size)
-    i = cell_index(safe[..., 1], h, image_size)
     flat = smoothed.reshape(b, k, h * w)
-    idx = (i * w + j).unsqueeze(1).expand(b, k, -1)  # [B,K,N]
-    feats = torch.gather(flat, 2, idx).transpose(1, 2)
+
+    def at(i, j):
+        idx = (i * w + j).unsqueeze(1).expand(b, k, -1)  # [B,K,N]
+        return torch.gather(flat, 2, idx).transpose(1, 2)
+
+    if sampling == "nearest":
+        feats = at(cell_index(safe[..., 1], h, image_size), cell_index(safe[..., 0], w, image_size))
+    elif sampling == "bilinear":
+        i0, ty = bilinear_cell(safe[..., 1], h, image_size)
+        j0, tx = bilinear_cell(safe[..., 0], w, image_size)
+        i1, j1 = (i0 + 1).clamp(max=h - 1), (j0 + 1).clamp(max=w - 1)
+        tx, ty = tx.unsqueeze(2), ty.unsqueeze(2)
+        top = (1 - tx) * at(i0, j0) + tx * at(i0, j1)
+        bottom = (1 - tx) * at(i1, j0) + tx * at(i1, j1)
+        feats = (1 - ty) * top + ty * bottom
+    else:
+        raise ValueError(f"sampling {sampling!r}: nearest or bilinear")
     return feats * finite.unsqueeze(2).to(feats.dtype)
+
+
+def bilinear_cell(x: torch.Tensor, cells: int, image_size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """The lower of the two cells around model pixel x and the weight of the upper one, in float32
+    like the server: c = x·W'/S clamped to [0, W'-1] (cell j's centre is at x = j·S/W')."""
+    c = (x.float() * float(cells) / float(image_size)).clamp(0, cells - 1)
+    lo = torch.floor(c).clamp(max=max(cells - 2, 0))
+    return lo.long(), c - lo
 
 
 def smoothed(raw: np.ndarray, cfg, batch: int = 2048) -> np.ndarray:

@@ -510,11 +510,11 @@ def rotate_z(x: torch.Tensor, angle: torch.Tensor) -> torch.Tensor:
     return torch.stack([c * x[..., 0] - s * x[..., 1], s * x[..., 0] + c * x[..., 1], x[..., 2]], dim=-1)
 
 
-def point_batch(xyz, uv, smoothed, image_size: int):
+def point_batch(xyz, uv, smoothed, pipeline: PipelineConfig):
     """Network input [B,N,3(+K)] from xyz [B,N,3], uv [B,N,2] and smoothed heatmaps (or None)."""
     if smoothed is None:
         return xyz
-    return torch.cat([xyz, sample_features(smoothed, uv, image_size)], dim=2)
+    return torch.cat([xyz, sample_features(smoothed, uv, pipeline.image_size, pipeline.sampling)], dim=2)
 
 
 def shard_heatmaps(camera: CameraNet, pipeline: PipelineConfig, device: str):
@@ -612,7 +612,7 @@ def train_point(
             sm = None if sm_all is None else sm_all[idx]
         # every process builds the global batch (one random stream) and trains on its slice
         mine = d.slice(len(idx))
-        x = point_batch(xyz[mine], uv[mine], None if sm is None else sm[mine], s).to(device)
+        x = point_batch(xyz[mine], uv[mine], None if sm is None else sm[mine], pipeline).to(device)
         pred, seg_logits = model(x)
         pred, seg_logits = pred.float(), seg_logits.float()
         loss = regression_loss(pred, target[mine].to(device), weight[idx][mine].to(device))
@@ -647,14 +647,16 @@ def train_point(
 
 
 @torch.no_grad()
-def predict_points(net: PointNet, xyz: np.ndarray, uv: np.ndarray, smoothed, image_size: int, batch=512):
+def predict_points(
+    net: PointNet, xyz: np.ndarray, uv: np.ndarray, smoothed, pipeline: PipelineConfig, batch=512
+):
     """Keypoints [M,K,3] for the serve points xyz [M,N,3] / uv [M,N,2]."""
     net.eval()
     out = []
     for a in range(0, len(xyz), batch):
         sm = None if smoothed is None else torch.from_numpy(smoothed[a : a + batch])
         x = point_batch(
-            torch.from_numpy(xyz[a : a + batch]), torch.from_numpy(uv[a : a + batch]), sm, image_size
+            torch.from_numpy(xyz[a : a + batch]), torch.from_numpy(uv[a : a + batch]), sm, pipeline
         )
         out.append(net(x)[0].numpy())
     return np.concatenate(out, axis=0) if out else np.zeros((0, K, 3), np.float32)

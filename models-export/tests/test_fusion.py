@@ -38,6 +38,24 @@ def test_cell_index_rounds_and_clamps_like_the_server():
     np.testing.assert_array_equal(f[0].numpy(), [[6.0, 22.0], [0.0, 0.0]])
 
 
+def test_bilinear_sampling_blends_the_four_cells_around_a_point():
+    hm = torch.arange(16, dtype=torch.float32).view(1, 1, 4, 4)
+    uv = torch.tensor([[[6.0, 2.0], [4.0, 4.0], [-3.0, 15.0], [float("nan"), 1.0], [13.0, 9.0]]])
+    # the same hand-computed values as the server's unit test (crates/core/src/pipeline/fusion.rs)
+    f = fusion.sample_features(hm, uv, 16, "bilinear")[0, :, 0]
+    np.testing.assert_array_equal(f.numpy(), [3.5, 5.0, 12.0, 0.0, 12.0])
+    with pytest.raises(ValueError, match="nearest or bilinear"):
+        fusion.sample_features(hm, uv, 16, "bicubic")
+
+
+def test_the_manifest_names_the_sampling_only_when_it_is_not_the_nearest_cell():
+    from posefuse_train.config import PipelineConfig
+
+    assert "sampling" not in PipelineConfig().to_dict()
+    d = PipelineConfig(sampling="bilinear").to_dict()
+    assert d["sampling"] == "bilinear" and PipelineConfig.from_dict(d).sampling == "bilinear"
+
+
 def test_decode_finds_the_peak_with_a_quarter_shift():
     hm = np.zeros((1, 2, 4, 4), np.float32)
     hm[0, 0, 1, 2], hm[0, 0, 1, 3] = 0.9, 0.5  # right neighbour larger
@@ -73,6 +91,10 @@ def test_fusion_matches_the_server_golden_vectors():
         torch.tensor(g["smoothed"], dtype=torch.float32).view(1, k, h, w), uv[None], s
     )
     np.testing.assert_allclose(feats[0].numpy().ravel(), g["features"], rtol=0, atol=0)
+    bilinear = fusion.sample_features(
+        torch.tensor(g["smoothed"], dtype=torch.float32).view(1, k, h, w), uv[None], s, "bilinear"
+    )
+    np.testing.assert_allclose(bilinear[0].numpy().ravel(), g["bilinear_features"], rtol=0, atol=1e-6)
 
 
 def test_lift_matches_the_server_golden_vectors():

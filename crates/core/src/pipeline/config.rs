@@ -19,6 +19,22 @@ pub enum PointFrame {
     Centred,
 }
 
+/// How a LiDAR point reads the smoothed heatmaps at its projection (docs/BUNDLE.md, "Sampling").
+#[derive(Debug, Clone, Copy, Default, PartialEq, Eq, Serialize, Deserialize, utoipa::ToSchema)]
+#[serde(rename_all = "snake_case")]
+pub enum Sampling {
+    /// The cell the point falls in (the paper).
+    #[default]
+    Nearest,
+    /// Between the four cells around the point, weighted by its distance to their centres: a
+    /// point between two cells gets evidence from both.
+    Bilinear,
+}
+
+fn is_nearest(s: &Sampling) -> bool {
+    *s == Sampling::Nearest
+}
+
 /// The top LiDAR's nominal position in the vehicle frame, from where the view frame's ray starts.
 pub const NOMINAL_LIDAR_ORIGIN: [f64; 3] = [1.43, 0.0, 2.12];
 
@@ -42,12 +58,15 @@ pub struct PipelineConfig {
     pub mean: [f32; 3],
     /// Per-channel standard deviation (RGB, on 0..1 values).
     pub std: [f32; 3],
-    /// Side of the camera network's heatmaps (S/4).
+    /// Side of the camera network's heatmaps (S/4 in the paper; any divisor of S).
     pub heatmap_size: u32,
     /// Gaussian smoothing kernel side (odd) applied to heatmaps before sampling.
     pub smoothing_kernel: u32,
     /// Gaussian smoothing sigma, in heatmap cells.
     pub smoothing_sigma: f32,
+    /// How points read the smoothed heatmaps; absent: `nearest`, as bundles before it.
+    #[serde(default, skip_serializing_if = "is_nearest")]
+    pub sampling: Sampling,
     /// Points fed to the point network.
     pub num_points: u32,
     /// Metres added on every side of the 3D box when collecting its points.
@@ -79,6 +98,7 @@ impl Default for PipelineConfig {
             heatmap_size: 64,
             smoothing_kernel: 7,
             smoothing_sigma: 3.0,
+            sampling: Sampling::Nearest,
             num_points: 256,
             box_margin: 0.15,
             rotate_by_heading: true,
@@ -195,5 +215,19 @@ mod tests {
         v["frame"] = "view".into();
         let new: PipelineConfig = serde_json::from_value(v).unwrap_or_else(|e| panic!("{e}"));
         assert_eq!(new.point_frame(), PointFrame::View);
+    }
+
+    #[test]
+    fn bundles_without_a_sampling_keep_the_nearest_cell() {
+        let mut v = serde_json::to_value(PipelineConfig::default()).unwrap_or_default();
+        assert!(v.get("sampling").is_none(), "written as before sub-cell sampling: {v}");
+        let old: PipelineConfig = serde_json::from_value(v.clone()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(old.sampling, Sampling::Nearest);
+        v["sampling"] = "bilinear".into();
+        let new: PipelineConfig = serde_json::from_value(v.clone()).unwrap_or_else(|e| panic!("{e}"));
+        assert_eq!(new.sampling, Sampling::Bilinear);
+        assert_eq!(serde_json::to_value(&new).unwrap_or_default()["sampling"], "bilinear");
+        v["sampling"] = "bicubic".into();
+        assert!(serde_json::from_value::<PipelineConfig>(v).is_err());
     }
 }

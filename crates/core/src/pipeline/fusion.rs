@@ -1,7 +1,7 @@
 //! Modality fusion (paper sec. 3.2): smooth the camera network's heatmaps with a Gaussian and
 //! sample each point's cell, giving every LiDAR point K camera features.
 
-use super::PipelineConfig;
+use super::{PipelineConfig, Sampling};
 use crate::keypoints::K;
 
 /// A `size × size` Gaussian with standard deviation `sigma` (cells), normalized to sum 1,
@@ -152,7 +152,39 @@ pub fn smoothed_features(
 /// model-input pixels `uv`, `[N, K]`.
 pub fn fusion_features(heatmaps: &[f32], uv: &[[f32; 2]], cfg: &PipelineConfig) -> Vec<f32> {
     let h = cfg.heatmap_size as usize;
-    smoothed_features(heatmaps, K, h, h, uv, cfg)
+    match cfg.sampling {
+        Sampling::Nearest => smoothed_features(heatmaps, K, h, h, uv, cfg),
+        Sampling::Bilinear => sample_bilinear(&smooth_heatmaps(heatmaps, K, h, h, cfg), K, h, h, uv, cfg.image_size),
+    }
+}
+
+/// The lower of the two cells around model-input pixel `x` and the weight of the upper one:
+/// `c = x · W'/S` clamped to `[0, W' − 1]` (cell `j`'s centre is at `x = j · S/W'`, as
+/// [`cell_index`] rounds to it).
+pub fn bilinear_cell(x: f32, cells: usize, image_size: u32) -> (usize, f32) {
+    let c = (x * cells as f32 / image_size as f32).clamp(0.0, (cells - 1) as f32);
+    let lo = c.floor().min(cells.saturating_sub(2) as f32);
+    (lo as usize, c - lo)
+}
+
+/// `[N, K]` features interpolated between the four smoothed cells around each point (rows, then
+/// the two rows blended); a point without a projection (NaN) gets zeros.
+pub fn sample_bilinear(smoothed: &[f32], k: usize, h: usize, w: usize, uv: &[[f32; 2]], image_size: u32) -> Vec<f32> {
+    let mut out = vec![0.0f32; uv.len() * k];
+    for (n, p) in uv.iter().enumerate() {
+        if !(p[0].is_finite() && p[1].is_finite()) {
+            continue;
+        }
+        let ((i0, ty), (j0, tx)) = (bilinear_cell(p[1], h, image_size), bilinear_cell(p[0], w, image_size));
+        let (i1, j1) = ((i0 + 1).min(h - 1), (j0 + 1).min(w - 1));
+        for c in 0..k {
+            let at = |i: usize, j: usize| smoothed[c * h * w + i * w + j];
+            let top = (1.0 - tx) * at(i0, j0) + tx * at(i0, j1);
+            let bottom = (1.0 - tx) * at(i1, j0) + tx * at(i1, j1);
+            out[n * k + c] = (1.0 - ty) * top + ty * bottom;
+        }
+    }
+    out
 }
 
 /// The fusion point-network input `[N, 3 + K]` of a person from its camera network's
@@ -250,5 +282,37 @@ mod tests {
         let lazy = smoothed_features(&hm, k, h, w, &uv, &cfg);
         assert_eq!(lazy, sample_features(&smooth_heatmaps(&hm, k, h, w, &cfg), k, h, w, &uv, 64));
         assert!(lazy.iter().any(|v| *v != 0.0));
+    }
+
+    #[test]
+    fn bilinear_sampling_blends_the_four_cells_around_a_point() {
+        // S = 16, W' = 4: cell j's centre is at x = 4j
+        assert_eq!(bilinear_cell(6.0, 4, 16), (1, 0.5));
+        assert_eq!(bilinear_cell(4.0, 4, 16), (1, 0.0));
+        // clamped to the last cell centre, reached from the cell below it
+        assert_eq!(bilinear_cell(15.0, 4, 16), (2, 1.0));
+        assert_eq!(bilinear_cell(-3.0, 4, 16), (0, 0.0));
+        let hm: Vec<f32> = (0..16).map(|v| v as f32).collect();
+        let uv = [[6.0, 2.0], [4.0, 4.0], [-3.0, 15.0], [f32::NAN, 1.0], [13.0, 9.0]];
+        let f = sample_bilinear(&hm, 1, 4, 4, &uv, 16);
+        // (6, 2): cells (0,1)=1 (0,2)=2 (1,1)=5 (1,2)=6, halfway in both → 3.5;
+        // (13, 9): x → 3.25 clamps to 3 (col 3), y → 2.25 between rows 2 and 3 → 11 + 0.25·4 = 12
+        assert_eq!(f, vec![3.5, 5.0, 12.0, 0.0, 12.0]);
+        // on a cell centre it is the nearest cell's value
+        let nearest = sample_features(&hm, 1, 4, 4, &[[8.0, 12.0]], 16);
+        assert_eq!(sample_bilinear(&hm, 1, 4, 4, &[[8.0, 12.0]], 16), nearest);
+    }
+
+    #[test]
+    fn the_configured_sampling_is_the_one_fusion_uses() {
+        let (h, s) = (8usize, 32u32);
+        let hm: Vec<f32> = (0..K * h * h).map(|v| (v % 13) as f32).collect();
+        let uv = [[5.0, 7.0], [30.0, 1.0]];
+        let nearest = PipelineConfig { heatmap_size: 8, ..PipelineConfig::with_image_size(s) };
+        let bilinear = PipelineConfig { sampling: Sampling::Bilinear, ..nearest.clone() };
+        let smoothed = smooth_heatmaps(&hm, K, h, h, &nearest);
+        assert_eq!(fusion_features(&hm, &uv, &nearest), sample_features(&smoothed, K, h, h, &uv, s));
+        assert_eq!(fusion_features(&hm, &uv, &bilinear), sample_bilinear(&smoothed, K, h, h, &uv, s));
+        assert_ne!(fusion_features(&hm, &uv, &bilinear), fusion_features(&hm, &uv, &nearest));
     }
 }

@@ -10,7 +10,7 @@ mod lift;
 mod points;
 mod prepare;
 
-pub use config::{PipelineConfig, PointFrame, NOMINAL_LIDAR_ORIGIN};
+pub use config::{PipelineConfig, PointFrame, Sampling, NOMINAL_LIDAR_ORIGIN};
 pub use crop::{crop_rgb, normalize, CropTransform};
 pub use decode_plan::{
     pixel_region, plan_decode, plan_passes, scaled, window_denominator, DecodePass, DecodePlan, PixelRect,
@@ -18,8 +18,8 @@ pub use decode_plan::{
 };
 pub use facing::{facing, yaw_difference, Facing, FULL_WIDTH_M};
 pub use fusion::{
-    cell_index, fused_points, fusion_features, fusion_input, gaussian_kernel, lidar_points, sample_features,
-    smooth_heatmaps, smoothed_features,
+    bilinear_cell, cell_index, fused_points, fusion_features, fusion_input, gaussian_kernel, lidar_points,
+    sample_bilinear, sample_features, smooth_heatmaps, smoothed_features,
 };
 pub use lift::{decode_heatmaps, lift, reliability};
 pub use points::{
