@@ -175,6 +175,14 @@ fn setup() -> Setup {
         let (reports, preds) = python(&copy, &data, "auto", &dir.join(format!("{name}.json")));
         runs.insert(name, Run { serve, trainer: reports["auto"].clone(), trainer_predictions: preds["auto"].clone() });
     }
+    // sub-cell sampling: a copy whose manifest asks for it (the networks are the same)
+    let bilinear = bundle_copy(&bundle, &dir.join("bilinear"), |m| m["preprocessing"]["sampling"] = json!("bilinear"));
+    let served = serve(&rt, &bilinear, &frames, &["fusion"]).remove(0);
+    let (reports, preds) = python(&bilinear, &data, "fusion", &dir.join("bilinear.json"));
+    runs.insert(
+        "fusion_bilinear",
+        Run { serve: served, trainer: reports["fusion"].clone(), trainer_predictions: preds["fusion"].clone() },
+    );
     // the INT8 camera network: a copy whose manifest makes it the bundle's own precision
     let int8 = bundle_copy(&bundle, &dir.join("int8"), |m| m["precision"] = json!("int8"));
     let serve = serve(&rt, &int8, &frames, &["fusion"]).remove(0);
@@ -301,12 +309,11 @@ fn camera_mode_serves_what_the_trainer_evaluates() {
     forced("camera");
 }
 
-/// The INT8 camera network serves what the trainer evaluates with it, and it is not the float32
-/// one: some fused keypoint moves.
-#[test]
-fn fusion_mode_with_the_int8_camera_serves_what_the_trainer_evaluates() {
+/// A fusion-mode variant `name` serves what the trainer evaluates with it, and it is not plain
+/// fusion: returns how far its farthest keypoint moved from plain fusion's (metres).
+fn fusion_variant(name: &str) -> f64 {
     let setup = setup_once();
-    let c = compare(setup, "fusion_int8");
+    let c = compare(setup, name);
     assert!(c.persons >= MIN_PERSONS && c.by_mode.keys().collect::<Vec<_>>() == ["fusion"], "{c:?}");
     let answers = |name: &str| -> Vec<Vec<[f64; 3]>> {
         let items = setup.runs[name].serve["predictions"].as_array().expect("predictions").clone();
@@ -316,11 +323,23 @@ fn fusion_mode_with_the_int8_camera_serves_what_the_trainer_evaluates() {
             .map(|p| xyz(&p))
             .collect()
     };
-    let (int8, fp32) = (answers("fusion_int8"), answers("fusion"));
-    assert_eq!(int8.len(), fp32.len());
-    let moved =
-        int8.iter().zip(&fp32).flat_map(|(a, b)| a.iter().zip(b)).map(|(a, b)| distance(a, b)).fold(0.0, f64::max);
-    assert!(moved > 1e-6, "the INT8 camera changed nothing: was it loaded?");
+    let (variant, plain) = (answers(name), answers("fusion"));
+    assert_eq!(variant.len(), plain.len());
+    variant.iter().zip(&plain).flat_map(|(a, b)| a.iter().zip(b)).map(|(a, b)| distance(a, b)).fold(0.0, f64::max)
+}
+
+/// The INT8 camera network serves what the trainer evaluates with it, and it is not the float32
+/// one: some fused keypoint moves.
+#[test]
+fn fusion_mode_with_the_int8_camera_serves_what_the_trainer_evaluates() {
+    assert!(fusion_variant("fusion_int8") > 1e-6, "the INT8 camera changed nothing: was it loaded?");
+}
+
+/// Bilinear sampling (docs/BUNDLE.md, "Heatmap grid and sampling") serves what the trainer
+/// evaluates with it, and it is not the nearest cell.
+#[test]
+fn fusion_mode_with_bilinear_sampling_serves_what_the_trainer_evaluates() {
+    assert!(fusion_variant("fusion_bilinear") > 1e-6, "bilinear sampling changed nothing: was it read?");
 }
 
 fn auto(name: &str, boundary_mode: &str) {

@@ -13,6 +13,17 @@ from dataclasses import dataclass, field
 NOMINAL_LIDAR_ORIGIN = [1.43, 0.0, 2.12]
 
 
+# The model's part of the preprocessing (a recipe's [pipeline] may set them); the rest is the data's.
+MODEL_FIELDS = (
+    "heatmap_size",
+    "smoothing_kernel",
+    "smoothing_sigma",
+    "sampling",
+    "lift_temperature",
+    "min_points",
+)
+
+
 @dataclass
 class PipelineConfig:
     image_size: int = 256

@@ -24,7 +24,7 @@ import numpy as np
 
 from posefuse_train import data as data_mod
 from posefuse_train.bundle_eval import predictions, sessions
-from posefuse_train.config import PipelineConfig
+from posefuse_train.config import MODEL_FIELDS, PipelineConfig
 from posefuse_train.evaluate import evaluate
 from posefuse_train.metrics import local_to_vehicle
 
@@ -33,11 +33,12 @@ MODES = ("auto", "fusion", "lidar", "camera")
 
 def same_config(a: PipelineConfig, b: PipelineConfig) -> bool:
     """Equal up to f32 rounding (the Rust side stores mean/std as f32) in what prepares the data;
-    smoothing, the lifting temperature and min_points are the bundle's, not the data's."""
+    the heatmap grid, smoothing, sampling, the lifting temperature and min_points are the bundle's,
+    not the data's (MODEL_FIELDS)."""
     da, db = a.to_dict(), b.to_dict()
     for d in (da, db):
-        for k in ("smoothing_kernel", "smoothing_sigma", "lift_temperature", "min_points"):
-            d.pop(k)
+        for k in MODEL_FIELDS:
+            d.pop(k, None)
     return da.keys() == db.keys() and all(
         np.allclose(da[k], db[k], rtol=1e-6) if isinstance(da[k], (list, float)) else da[k] == db[k]
         for k in da
