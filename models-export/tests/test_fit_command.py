@@ -14,6 +14,7 @@ from synthetic import write_dataset
 
 from posefuse_train import recipe as recipes
 from posefuse_train.fit import FitArgs, fit
+from posefuse_train.keypoints import K
 
 # A few steps of the cpu recipe, sized for the tests' 32 px synthetic sets.
 TINY = (
@@ -173,6 +174,23 @@ def test_the_cpu_recipe_is_the_default_bundles_recipe():
             assert getattr(pt, k) == v, (stage, k)
         assert {k: list(v) if isinstance(v, tuple) else v for k, v in vars(pnet).items()} == cfg[stage]["net"]
     assert cfg["lidar"]["steps"] == recipes.point_config(cpu, False)[1].steps
+
+
+def test_a_recipe_with_a_finer_heatmap_grid_trains_and_exports_it(synthetic_sets, tmp_path):
+    """docs/TRAINING.md, "Heatmap resolution": S/2 heatmaps from a pixel-shuffled last conv,
+    sampled bilinearly, from the recipe to the bundle's networks and manifest."""
+    text = (MODELS_EXPORT / "posefuse_train/recipes/cpu.toml").read_text()
+    fine = 'smoothing_sigma = 1.5\nheatmap_size = 16\nsampling = "bilinear"'
+    text = text.replace("smoothing_sigma = 3.0", fine)
+    text = text.replace("deconv_layers = 3", "deconv_layers = 3\nfinal_shuffle = 2")
+    (tmp_path / "fine.toml").write_text(text)
+    out = tmp_path / "b"
+    manifest = fit(args(synthetic_sets, out, recipe=str(tmp_path / "fine.toml")))
+    pre = manifest["preprocessing"]
+    assert (pre["image_size"], pre["heatmap_size"], pre["sampling"]) == (32, 16, "bilinear")
+    assert manifest["models"]["camera"]["outputs"]["heatmaps"] == [-1, K, 16, 16]
+    assert manifest["training"]["config"]["camera"]["final_shuffle"] == 2
+    assert manifest["metrics"]["held_out"]["fusion"]["count_3d"] > 0
 
 
 def test_a_recipe_for_another_crop_size_is_refused(synthetic_sets, tmp_path):
