@@ -303,7 +303,7 @@ mod tests {
         assert_eq!(sample_bilinear(&hm, 1, 4, 4, &[[8.0, 12.0]], 16), nearest);
         // a second channel is read from its own plane
         let two: Vec<f32> = (0..32).map(|v| v as f32).collect();
-        assert_eq!(sample_bilinear(&two, 2, 4, 4, &[[6.0, 2.0]], 16), vec![3.5, 19.5]);
+        assert_eq!(sample_bilinear(&two, 2, 4, 4, &[[6.0, 2.0], [4.0, 4.0]], 16), vec![3.5, 19.5, 5.0, 21.0]);
         // a grid one cell high or wide has no second row or column to blend with
         let row = [1.0, 2.0, 3.0, 4.0];
         assert_eq!(sample_bilinear(&row, 1, 1, 4, &[[6.0, 2.0]], 16), vec![2.5]);
