@@ -1,7 +1,8 @@
 """Camera network: SimpleBaseline (a ResNet backbone of stride 32, stride-2 deconvolutions, a 1x1 conv
 and a sigmoid) predicting K keypoint heatmaps. Three deconvolutions give heatmaps at a quarter of the
-input resolution, as in the paper; a fourth gives half, which is how a small crop still gets a grid
-fine enough to tell neighbouring LiDAR points apart (docs/TRAINING.md, "Heatmap resolution")."""
+input resolution, as in the paper; a fourth, or a last conv whose 2x2 sub-cells a pixel shuffle lays
+out (`final_shuffle`), gives half, which is how a small crop still gets a grid fine enough to tell
+neighbouring LiDAR points apart (docs/TRAINING.md, "Heatmap resolution")."""
 
 from __future__ import annotations
 
