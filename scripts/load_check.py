@@ -39,6 +39,21 @@ def ready(port: int) -> bool:
         return c.recv(64).startswith(b"HTTP/1.1 200")
 
 
+def wait_ready(proc: subprocess.Popen, port: int, log: Path, what: str) -> None:
+    """Until /readyz answers 200; exits with the log's tail if the process dies first."""
+    deadline = time.time() + 120
+    while time.time() < deadline:
+        if proc.poll() is not None:
+            raise SystemExit(f"{what} exited: {log.read_text()[-2000:]}")
+        try:
+            if ready(port):
+                return
+        except OSError:
+            pass
+        time.sleep(0.1)
+    raise SystemExit(f"{what} not ready in 120 s")
+
+
 class Server:
     """A `posefuse serve` child process with its log in a file."""
 
@@ -61,17 +76,7 @@ class Server:
             stdout=subprocess.DEVNULL,
             stderr=log.open("w"),
         )
-        deadline = time.time() + 120
-        while time.time() < deadline:
-            if self.proc.poll() is not None:
-                raise SystemExit(f"server exited: {log.read_text()[-2000:]}")
-            try:
-                if ready(self.port):
-                    return
-            except OSError:
-                pass
-            time.sleep(0.1)
-        raise SystemExit("server not ready in 120 s")
+        wait_ready(self.proc, self.port, log, "server")
 
     def proc_status(self) -> dict[str, int]:
         """VmRSS (kB) and Threads of the server."""
@@ -324,6 +329,15 @@ async def idle_check(a: argparse.Namespace) -> dict:
 # ---------------------------------------------------------------- overload
 
 
+async def watch_peak(server: Server, stop_at: float, peak: dict[str, int]) -> None:
+    """Until stop_at, keeps in `peak` the largest of each of its keys in the server's status."""
+    while time.time() < stop_at:
+        s = server.proc_status()
+        for k, v in peak.items():
+            peak[k] = max(v, s.get(k, 0))
+        await asyncio.sleep(0.1)
+
+
 async def run_clients(
     server: Server, frames: list[bytes], clients: int, duration: float, backoff: str
 ) -> dict:
@@ -354,15 +368,8 @@ async def run_clients(
                 await asyncio.sleep(min(wait or 0.0, max(stop_at - time.time(), 0.0)))
         conn.close()
 
-    async def watch() -> None:
-        while time.time() < stop_at:
-            s = server.proc_status()
-            for k, v in peak.items():
-                peak[k] = max(v, s.get(k, 0))
-            await asyncio.sleep(0.1)
-
     t0 = time.time()
-    await asyncio.gather(watch(), *(client(i) for i in range(clients)))
+    await asyncio.gather(watch_peak(server, stop_at, peak), *(client(i) for i in range(clients)))
     took = time.time() - t0
     return {
         "clients": clients,

@@ -33,8 +33,9 @@ from load_check import (  # noqa: E402
     free_port,
     percentile,
     raise_fd_limit,
-    ready,
     request,
+    wait_ready,
+    watch_peak,
 )
 
 
@@ -53,17 +54,7 @@ class Peer(Server):
             stderr=log.open("w"),
             start_new_session=True,
         )
-        deadline = time.time() + 120
-        while time.time() < deadline:
-            if self.proc.poll() is not None:
-                raise SystemExit(f"peer exited: {log.read_text()[-2000:]}")
-            try:
-                if ready(self.port):
-                    return
-            except OSError:
-                pass
-            time.sleep(0.2)
-        raise SystemExit("peer not ready in 120 s")
+        wait_ready(self.proc, self.port, log, "peer")
 
     def proc_status(self) -> dict[str, int]:
         """VmRSS (kB) summed over uvicorn and its worker processes."""
@@ -104,7 +95,7 @@ async def load(server: Server, frames: list[bytes], persons: list[int], clients:
     honouring Retry-After on a 429."""
     done = {"frames": 0, "persons": 0, "refused": 0, "failed": 0}
     latency: list[float] = []
-    peak = 0
+    peak = {"VmRSS": 0}
     stop_at = time.time() + duration
 
     async def client(i: int) -> None:
@@ -127,14 +118,8 @@ async def load(server: Server, frames: list[bytes], persons: list[int], clients:
                 done["failed"] += 1
         conn.close()
 
-    async def watch() -> None:
-        nonlocal peak
-        while time.time() < stop_at:
-            peak = max(peak, server.proc_status().get("VmRSS", 0))
-            await asyncio.sleep(0.1)
-
     t0 = time.time()
-    await asyncio.gather(watch(), *(client(i) for i in range(clients)))
+    await asyncio.gather(watch_peak(server, stop_at, peak), *(client(i) for i in range(clients)))
     took = time.time() - t0
     return {
         "clients": clients,
@@ -144,7 +129,7 @@ async def load(server: Server, frames: list[bytes], persons: list[int], clients:
         "p99_ms": round(percentile(latency, 0.99) * 1e3, 2),
         "refused": done["refused"],
         "failed": done["failed"],
-        "peak_rss_mb": round(peak / 1024),
+        "peak_rss_mb": round(peak["VmRSS"] / 1024),
     }
 
 
