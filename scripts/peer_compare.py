@@ -116,6 +116,9 @@ async def load(server: Server, frames: list[bytes], persons: list[int], clients:
                 await asyncio.sleep(min(conn.retry_after or 0.0, max(stop_at - time.time(), 0.0)))
             else:
                 done["failed"] += 1
+                # a dead or refusing server must not turn the client into a busy loop on the
+                # cores the next server will be measured on
+                await asyncio.sleep(0.05)
         conn.close()
 
     t0 = time.time()
