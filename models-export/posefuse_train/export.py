@@ -29,6 +29,7 @@ import torch
 from . import __version__
 from .camera_net import CameraNet, check_heatmap_size, deconv_layers_for
 from .config import CameraNetConfig, PipelineConfig, PointNetConfig
+from .facing_net import FacingPointNet
 from .keypoints import NAMES, WAYMO_TYPES, K
 from .metrics import CONVENTION
 from .point_net import PointNet, PointNetExport
@@ -93,8 +94,8 @@ def check_parity(model: torch.nn.Module, path: Path, make_input, tol: float) -> 
 def export_bundle(
     out_dir: str | os.PathLike,
     camera: CameraNet,
-    fusion: PointNet,
-    lidar: PointNet,
+    fusion: PointNet | FacingPointNet,
+    lidar: PointNet | FacingPointNet,
     pipeline: PipelineConfig,
     *,
     trained: bool,
@@ -236,6 +237,23 @@ def main(argv=None):
     p.add_argument("--camera", help="camera checkpoint (.pt) of a trained model")
     p.add_argument("--fusion", help="fusion point-net checkpoint (.pt)")
     p.add_argument("--lidar", help="LiDAR-only point-net checkpoint (.pt)")
+    p.add_argument(
+        "--facing-fusion",
+        help="a fusion point net trained with rotation over [0, 2π) (.pt) that reads the facing for --fusion",
+    )
+    p.add_argument("--facing-lidar", help="the same for --lidar (both or neither)")
+    p.add_argument(
+        "--facing-passes", type=int, default=1, help="refinement passes inside the graph (with --facing-*)"
+    )
+    p.add_argument(
+        "--facing-turns", type=int, default=1, help="turns of the input the facing nets answer at"
+    )
+    p.add_argument(
+        "--facing-agree-deg",
+        type=float,
+        default=0.0,
+        help="keep the box frame where the facing net agrees with it within this many degrees (0: never)",
+    )
     p.add_argument("--metrics", help="JSON file with held-out metrics {fusion, lidar, camera}")
     p.add_argument("--name", default="default")
     p.add_argument("--version", default=__version__, help="the bundle's version, which every response names")
@@ -265,6 +283,20 @@ def main(argv=None):
                 "lidar": lid_ckpt.get("train_config"),
             },
         }
+        if bool(a.facing_fusion) != bool(a.facing_lidar):
+            p.error("--facing-fusion and --facing-lidar go together")
+        if a.facing_fusion:
+            first_f, first_l = (load_checkpoint(x) for x in (a.facing_fusion, a.facing_lidar))
+            shape = dict(passes=a.facing_passes, turns=a.facing_turns, agree_deg=a.facing_agree_deg)
+            fusion = FacingPointNet(point_from_checkpoint(first_f), fusion, **shape)
+            lidar = FacingPointNet(point_from_checkpoint(first_l), lidar, **shape)
+            training["config"]["facing"] = {
+                "passes": a.facing_passes,
+                "turns": a.facing_turns,
+                "agree_deg": a.facing_agree_deg,
+                "fusion": first_f.get("train_config"),
+                "lidar": first_l.get("train_config"),
+            }
         metrics = json.loads(Path(a.metrics).read_text()) if a.metrics else None
         trained = True
     manifest = export_bundle(
