@@ -110,6 +110,12 @@ def main(argv=None):
     )
     p.add_argument("--camera-epochs", type=float, default=TrainCameraConfig.epochs)
     p.add_argument("--camera-lr", type=float, default=TrainCameraConfig.lr)
+    p.add_argument(
+        "--camera-facing-weight",
+        type=float,
+        default=TrainCameraConfig.facing_weight,
+        help="> 0: train the camera net with a facing target of this weight (docs/TRAINING.md)",
+    )
     p.add_argument("--camera-checkpoint", help="reuse a trained camera net instead of training one")
     p.add_argument(
         "--point-epochs",
@@ -213,7 +219,9 @@ def main(argv=None):
 
     # camera network
     t = time.time()
-    cam_cfg = TrainCameraConfig(epochs=a.camera_epochs, lr=a.camera_lr, time_budget_s=cam_budget)
+    cam_cfg = TrainCameraConfig(
+        epochs=a.camera_epochs, lr=a.camera_lr, time_budget_s=cam_budget, facing_weight=a.camera_facing_weight
+    )
     if a.camera_checkpoint:
         cam_ckpt = torch.load(a.camera_checkpoint, map_location="cpu", weights_only=False)
         camera = camera_from_checkpoint(cam_ckpt).to(a.device)
@@ -234,6 +242,7 @@ def main(argv=None):
             deconv_channels=a.deconv_channels,
             deconv_layers=deconv_layers_for(cfg.image_size, cfg.heatmap_size, a.final_shuffle),
             final_shuffle=a.final_shuffle,
+            facing_head=a.camera_facing_weight > 0,
         )
         camera = train_camera(train, cfg, net_cfg, cam_cfg, a.device, log=log)
         torch.save(checkpoint(camera, cfg, cam_cfg, str(a.train)), out / "camera.pt")

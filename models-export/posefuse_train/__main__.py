@@ -53,6 +53,20 @@ def fit_parser() -> argparse.ArgumentParser:
     p.add_argument("--name", default="default", help="the bundle's name")
     p.add_argument("--version", default=__version__, help="the bundle's version, which every response names")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
+    p.add_argument(
+        "--facing-from",
+        metavar="WORK",
+        help="a finished fit's work directory, trained with --set point.rotate_deg=180: its point nets read "
+        "the facing in front of this run's, so the bundle needs no box heading (docs/TRAINING.md)",
+    )
+    p.add_argument("--facing-turns", type=int, default=4, help="turns the facing nets answer at")
+    p.add_argument("--facing-passes", type=int, default=1, help="refinement passes inside the point networks")
+    p.add_argument(
+        "--facing-agree-deg",
+        type=float,
+        default=0.0,
+        help="keep the box frame where the facing net agrees with the heading within this many degrees",
+    )
     return p
 
 

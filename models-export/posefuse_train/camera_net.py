@@ -138,6 +138,7 @@ class CameraNet(nn.Module):
         self.deconv = nn.Sequential(*layers)
         self.final = nn.Conv2d(cin, K * cfg.final_shuffle**2, 1)
         self.shuffle = nn.PixelShuffle(cfg.final_shuffle) if cfg.final_shuffle > 1 else nn.Identity()
+        self.facing = nn.Linear(self.backbone.out_channels, 1) if cfg.facing_head else None
         self._init()
 
     def _init(self):
@@ -156,5 +157,12 @@ class CameraNet(nn.Module):
     def logits(self, image: torch.Tensor) -> torch.Tensor:
         return self.shuffle(self.final(self.deconv(self.backbone(image))))
 
-    def forward(self, image: torch.Tensor) -> torch.Tensor:
-        return torch.sigmoid(self.logits(image))
+    def forward(self, image: torch.Tensor, with_facing: bool = False):
+        """Heatmaps [B,K,H,W]; with `with_facing` (training) also the facing head's logit [B]."""
+        if not with_facing:
+            return torch.sigmoid(self.logits(image))
+        if self.facing is None:
+            raise ValueError("this camera net has no facing head")
+        features = self.backbone(image)
+        heatmaps = torch.sigmoid(self.shuffle(self.final(self.deconv(features))))
+        return heatmaps, self.facing(features.mean(dim=(2, 3))).squeeze(1)

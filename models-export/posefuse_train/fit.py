@@ -36,6 +36,7 @@ from . import __version__, bundle_eval, distributed
 from . import recipe as recipes
 from .camera_net import CameraNet
 from .export import camera_from_checkpoint, export_bundle, load_checkpoint, point_from_checkpoint
+from .facing_net import FacingPointNet
 from .metrics import CONVENTION
 from .shards import ShardSet
 from .train import RunOptions, Stopped, checkpoint, stream_labels, train_camera, train_point
@@ -61,6 +62,12 @@ class FitArgs:
     version: str = __version__
     threads: int = 0
     command: str = ""
+    # another run's work directory whose point nets (trained with rotation over [0, 2π)) read the
+    # facing in front of this run's (docs/TRAINING.md, "A bundle that needs no heading")
+    facing_from: Path | None = None
+    facing_turns: int = 4
+    facing_passes: int = 1
+    facing_agree_deg: float = 0.0
 
 
 def resolve_device(device: str) -> str:
@@ -147,6 +154,34 @@ def _stop_at(a: FitArgs, stage: str) -> int:
     return int(step) if name == stage else 0
 
 
+def _same_camera(a: FitArgs, work: Path, d: distributed.Dist) -> None:
+    """The facing nets were trained on one camera net's heatmaps: this run takes that camera net
+    (copied in when it has none yet) and refuses another."""
+    source = Path(a.facing_from)
+    missing = [n for n in ("camera.pt", "fusion.pt", "lidar.pt") if not (source / n).exists()]
+    if missing:
+        raise ValueError(f"--facing-from {source}: no {', '.join(missing)} (a finished fit's work directory)")
+    if a.facing_turns < 1 or a.facing_passes < 0:
+        raise ValueError("--facing-turns must be >= 1 and --facing-passes >= 0")
+    mine = work / "camera.pt"
+    if d.main and not mine.exists():
+        shutil.copyfile(source / "camera.pt", mine)
+    d.barrier()
+    theirs, ours = (load_checkpoint(p)["state_dict"] for p in (source / "camera.pt", mine))
+    if theirs.keys() != ours.keys() or not all(torch.equal(theirs[k], ours[k]) for k in ours):
+        raise ValueError(f"--facing-from {source}: its camera net is not this run's ({mine})")
+
+
+def _with_facing(a: FitArgs, nets: dict) -> tuple[dict, dict]:
+    """This run's point nets behind the facing nets of `a.facing_from`, and what the manifest says of it."""
+    source = Path(a.facing_from)
+    shape = dict(passes=a.facing_passes, turns=a.facing_turns, agree_deg=a.facing_agree_deg)
+    firsts = {s: load_checkpoint(source / f"{s}.pt") for s in ("fusion", "lidar")}
+    wrapped = {s: FacingPointNet(point_from_checkpoint(firsts[s]), nets[s], **shape) for s in nets}
+    about = {"from": str(source), **shape, **{s: firsts[s].get("train_config") for s in firsts}}
+    return wrapped, about
+
+
 def fit(a: FitArgs) -> dict | None:
     """Runs (or resumes) the whole recipe; returns the manifest (rank 0) or None (other ranks,
     or a run stopped by --stop-after)."""
@@ -158,6 +193,8 @@ def fit(a: FitArgs) -> dict | None:
     recipe = recipes.load(a.recipe, list(a.overrides))
     work = _prepare_work(a, recipe, d)
     log = Log(work / "log.jsonl", d.main)
+    if a.facing_from:
+        _same_camera(a, work, d)
 
     train, test = ShardSet(a.train), ShardSet(a.test)
     want = recipe["recipe"].get("image_size")
@@ -245,7 +282,10 @@ def fit(a: FitArgs) -> dict | None:
     # the bundle is exported from the saved stage networks: plain modules, the weights on disk
     camera = camera_from_checkpoint(load_checkpoint(done("camera")))
     nets = {s: point_from_checkpoint(load_checkpoint(done(s))) for s in ("fusion", "lidar")}
-    manifest = _export(a, recipe, work, camera, nets, pipeline, train, test, device, d, log)
+    facing = None
+    if a.facing_from:
+        nets, facing = _with_facing(a, nets)
+    manifest = _export(a, recipe, work, camera, nets, pipeline, train, test, device, d, log, facing)
     timings["total_s"] = time.time() - t_start
     manifest["training"]["time_s"] = {**manifest["training"].get("time_s", {}), **timings}
     text = json.dumps(manifest, indent=2) + "\n"
@@ -266,7 +306,7 @@ def _finish(log, d, net, pipeline, cfg, train_path, path: Path, stage: str, timi
     d.barrier()
 
 
-def _export(a, recipe, work, camera: CameraNet, nets, pipeline, train, test, device, d, log) -> dict:
+def _export(a, recipe, work, camera: CameraNet, nets, pipeline, train, test, device, d, log, facing) -> dict:
     staged = work / "bundle"
     if staged.exists():
         shutil.rmtree(staged)
@@ -303,6 +343,7 @@ def _export(a, recipe, work, camera: CameraNet, nets, pipeline, train, test, dev
             "fusion": {**asdict(recipes.point_config(recipe, True)[1]), "net": asdict(nets["fusion"].cfg)},
             "lidar": {**asdict(recipes.point_config(recipe, False)[1]), "net": asdict(nets["lidar"].cfg)},
             "onnx_parity_max_abs_diff": parity,
+            **({"facing": facing} if facing else {}),
         },
         "versions": versions(),
         "device": device,
@@ -349,6 +390,10 @@ def main_fit(argv, parser) -> int:
         version=a.version,
         threads=a.threads,
         command=command_line(["fit", *argv]),
+        facing_from=Path(a.facing_from) if a.facing_from else None,
+        facing_turns=a.facing_turns,
+        facing_passes=a.facing_passes,
+        facing_agree_deg=a.facing_agree_deg,
     )
     # a run ends with a bundle, or stopped on purpose (--stop-after, other ranks): both succeed
     try:

@@ -38,7 +38,7 @@ from . import distributed
 from .camera_net import CameraNet, check_heatmap_size
 from .config import CameraNetConfig, PipelineConfig, PointNetConfig
 from .fusion import sample_features, smooth_heatmaps
-from .keypoints import FLIP, K
+from .keypoints import FLIP, NAMES, K
 from .labels import pseudo_labels, segmentation_labels
 from .losses import heatmap_loss, heatmap_targets, regression_loss, segmentation_loss
 from .point_net import PointNet
@@ -251,6 +251,8 @@ class TrainCameraConfig:
     scale_range: float = 0.25
     flip_prob: float = 0.5
     sigma_cells: float = 1.0  # target Gaussian sigma in heatmap cells (2 at 64x64 in the paper)
+    # > 0 (with a net that has a facing head): weight of the facing target's loss
+    facing_weight: float = 0.0
     steps: int = 0  # > 0: exactly this many steps (overrides epochs)
     time_budget_s: float = 0.0  # opt-in: > 0 stops (with the schedule compressed) when this runs out
     seed: int = 0
@@ -292,6 +294,28 @@ def augment(x, kp, vis, cfg: TrainCameraConfig, gen: torch.Generator):
     kp = torch.where(flip.view(-1, 1, 1), kp[:, perm], kp)
     vis = torch.where(flip.view(-1, 1), vis[:, perm], vis)
     return x, kp, vis
+
+
+# A person is judged side-on (no facing target) when the left-right spread is below this share of
+# the crop: about 4 px at S = 128.
+SIDE_ON = 0.03
+
+
+def facing_target(kp: torch.Tensor, vis: torch.Tensor, image_size: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """From 2D labels [B,K,2] (after augmentation): whether each person faces the camera (their
+    left shoulder and hip to the right of their right ones in the image) and whether that is
+    known (all four visible, not side-on). A flipped crop keeps its target: flipping mirrors x and
+    exchanges left and right."""
+    ls, rs, lh, rh = (NAMES.index(n) for n in ("left_shoulder", "right_shoulder", "left_hip", "right_hip"))
+    dx = (kp[:, ls, 0] - kp[:, rs, 0]) + (kp[:, lh, 0] - kp[:, rh, 0])
+    seen = (vis[:, [ls, rs, lh, rh]] > 0).all(dim=1)
+    return (dx > 0).float(), (seen & (dx.abs() > SIDE_ON * image_size)).float()
+
+
+def facing_loss(logit: torch.Tensor, front: torch.Tensor, known: torch.Tensor) -> torch.Tensor:
+    """Binary cross-entropy over the persons whose facing is known."""
+    per = F.binary_cross_entropy_with_logits(logit, front, reduction="none")
+    return (per * known).sum() / known.sum().clamp(min=1.0)
 
 
 class Stage:
@@ -430,7 +454,13 @@ def train_camera(
         x = normalize(x, pipeline)
         if opts.channels_last:
             x = x.contiguous(memory_format=torch.channels_last)
-        return heatmap_loss(model(x).float(), target, weight)
+        if cfg.facing_weight <= 0:
+            return heatmap_loss(model(x).float(), target, weight)
+        heatmaps, facing = model(x, with_facing=True)
+        front, known = facing_target(kp, vis, pipeline.image_size)
+        return heatmap_loss(heatmaps.float(), target, weight) + cfg.facing_weight * facing_loss(
+            facing.float(), front, known
+        )
 
     t0 = time.time()
     try:

@@ -242,3 +242,45 @@ def test_two_processes_train_like_one_at_the_same_global_batch(tmp_path):
     manifest = json.loads((tmp_path / "two" / "manifest.json").read_text())
     assert manifest["training"]["processes"] == 2
     assert np.isfinite(manifest["metrics"]["held_out"]["fusion"]["mpjpe_3d_m"])
+
+
+def test_a_run_behind_another_runs_facing_nets_exports_a_bundle_that_needs_no_heading(
+    synthetic_sets, uninterrupted, tmp_path
+):
+    first_out, _ = uninterrupted
+    first_work = first_out.with_name("bundle.work")
+    out = tmp_path / "free"
+    manifest = fit(args(synthetic_sets, out, facing_from=first_work, facing_turns=2, facing_agree_deg=30.0))
+    work = tmp_path / "free.work"
+    # the camera net is the facing nets' own, not trained again
+    assert equal(
+        {"camera": torch.load(work / "camera.pt", weights_only=False)["state_dict"]},
+        {"camera": torch.load(first_work / "camera.pt", weights_only=False)["state_dict"]},
+    )
+    assert not any(r.get("stage") == "camera" for r in records(work) if "loss" in r)
+    facing = manifest["training"]["config"]["facing"]
+    assert facing["from"] == str(first_work) and facing["turns"] == 2 and facing["passes"] == 1
+    assert facing["agree_deg"] == 30.0 and facing["fusion"]["fusion"] is True
+    assert all(manifest["metrics"]["held_out"][m]["count_3d"] > 0 for m in ("fusion", "lidar"))
+    # the exported point nets hold both networks: larger than the plain ones of the first run
+    for name in ("point_fusion.onnx", "point_lidar.onnx"):
+        assert (out / name).stat().st_size > 1.8 * (first_out / name).stat().st_size
+
+
+def test_facing_nets_behind_another_camera_net_are_refused(synthetic_sets, uninterrupted, tmp_path):
+    first_out, _ = uninterrupted
+    first_work = first_out.with_name("bundle.work")
+    other = tmp_path / "other.work"
+    other.mkdir()
+    for name in ("fusion.pt", "lidar.pt"):
+        (other / name).write_bytes((first_work / name).read_bytes())
+    ckpt = torch.load(first_work / "camera.pt", weights_only=False)
+    ckpt["state_dict"] = {k: v + 1 if v.is_floating_point() else v for k, v in ckpt["state_dict"].items()}
+    torch.save(ckpt, other / "camera.pt")
+    work = tmp_path / "mine.work"
+    work.mkdir()
+    (work / "camera.pt").write_bytes((first_work / "camera.pt").read_bytes())
+    with pytest.raises(ValueError, match="not this run's"):
+        fit(args(synthetic_sets, tmp_path / "mine", facing_from=other, work=work, resume=True))
+    with pytest.raises(ValueError, match="no camera.pt"):
+        fit(args(synthetic_sets, tmp_path / "x", facing_from=tmp_path / "nowhere"))

@@ -1,16 +1,20 @@
 import numpy as np
+import pytest
 import torch
+import torch.nn.functional as F
 
 from posefuse_train import labels
 from posefuse_train.camera_net import CameraNet
 from posefuse_train.config import CameraNetConfig, PointNetConfig
 from posefuse_train.data import load
-from posefuse_train.keypoints import FLIP, K
+from posefuse_train.keypoints import FLIP, NAMES, K
 from posefuse_train.losses import heatmap_loss, heatmap_targets, regression_loss, segmentation_loss
 from posefuse_train.train import (
     TrainCameraConfig,
     TrainPointConfig,
     augment,
+    facing_loss,
+    facing_target,
     normalize,
     select_points,
     to_input,
@@ -127,3 +131,82 @@ def test_point_training_reduces_the_loss(synthetic_sets):
     net = train_point(d, lab, sm, cfg, small, pcfg, log=lambda _: None)
     h = net.loss_history
     assert len(h) == 36 and np.mean(h[-5:]) < 0.6 * np.mean(h[:5])
+
+
+def person(left_x: float, right_x: float, s: int = 64):
+    """2D labels with the left shoulder and hip at `left_x`, the right ones at `right_x`."""
+    kp = torch.full((1, K, 2), s / 2)
+    vis = torch.ones(1, K)
+    for name, x, y in (
+        ("left_shoulder", left_x, 20.0),
+        ("right_shoulder", right_x, 20.0),
+        ("left_hip", left_x, 40.0),
+        ("right_hip", right_x, 40.0),
+    ):
+        kp[0, NAMES.index(name)] = torch.tensor([x, y])
+    return kp, vis
+
+
+def test_the_facing_target_reads_front_and_back_from_left_and_right():
+    # facing the camera, a person's left is on the image's right
+    kp, vis = person(40.0, 24.0)
+    assert facing_target(kp, vis, 64) == (torch.tensor([1.0]), torch.tensor([1.0]))
+    kp, vis = person(24.0, 40.0)
+    assert facing_target(kp, vis, 64) == (torch.tensor([0.0]), torch.tensor([1.0]))
+    # side-on (within 3 % of the crop) or a hip not seen: unknown
+    kp, vis = person(32.5, 32.0)  # shoulders and hips together 1 px apart
+    assert facing_target(kp, vis, 64)[1].item() == 0.0
+    kp, vis = person(40.0, 24.0)
+    vis[0, NAMES.index("right_hip")] = 0.0
+    assert facing_target(kp, vis, 64)[1].item() == 0.0
+
+
+def test_a_flipped_crop_keeps_its_facing_target():
+    kp, vis = person(44.0, 20.0)
+    cfg = TrainCameraConfig(rotate_prob=0.0, scale_range=0.0, flip_prob=1.0)
+    _, kp2, vis2 = augment(torch.zeros(1, 3, 64, 64), kp, vis, cfg, torch.Generator().manual_seed(0))
+    # the labels did move: the crop's new left shoulder is the old right one, mirrored
+    assert kp2[0, NAMES.index("left_shoulder"), 0] == pytest.approx(64 - 20.0)
+    assert facing_target(kp2, vis2, 64) == facing_target(kp, vis, 64)
+
+
+def test_the_facing_loss_counts_only_known_persons():
+    logit = torch.tensor([2.0, -2.0, 5.0])
+    front = torch.tensor([1.0, 1.0, 0.0])
+    known = torch.tensor([1.0, 1.0, 0.0])
+    want = (F.softplus(torch.tensor(-2.0)) + F.softplus(torch.tensor(2.0))) / 2
+    assert torch.isclose(facing_loss(logit, front, known), want)
+    assert facing_loss(logit, front, torch.zeros(3)).item() == 0.0
+
+
+def test_a_camera_net_with_a_facing_head_exports_only_its_heatmaps():
+    torch.manual_seed(0)
+    net = CameraNet(CameraNetConfig(backbone="resnet18-w16", deconv_channels=16, facing_head=True)).eval()
+    x = torch.randn(2, 3, 64, 64)
+    with torch.no_grad():
+        heatmaps, facing = net(x, with_facing=True)
+        assert torch.equal(net(x), heatmaps) and facing.shape == (2,)
+    plain = CameraNet(CameraNetConfig(backbone="resnet18-w16", deconv_channels=16))
+    with pytest.raises(ValueError):
+        plain(x, with_facing=True)
+
+
+def test_camera_steps_with_the_facing_target_reduce_both_losses(synthetic_sets):
+    d, cfg, _ = load(synthetic_sets[0])
+    torch.manual_seed(0)
+    net = CameraNet(CameraNetConfig(backbone="resnet18-w16", deconv_channels=32, facing_head=True))
+    opt = torch.optim.Adam(net.parameters(), lr=3e-3)
+    x = normalize(to_input(d["image"][:32], "cpu"), cfg)
+    kp, vis = torch.from_numpy(d["kp2d"][:32]), torch.from_numpy(d["kp2d_visible"][:32]).float()
+    t, w = heatmap_targets(kp, vis, cfg.image_size, cfg.heatmap_size, 1.0)
+    front, known = facing_target(kp, vis, cfg.image_size)
+    assert known.sum() >= 4
+    parts = []
+    for _ in range(12):
+        heatmaps, facing = net(x, with_facing=True)
+        hm, fl = heatmap_loss(heatmaps, t, w), facing_loss(facing, front, known)
+        opt.zero_grad()
+        (hm + 1e-2 * fl).backward()
+        opt.step()
+        parts.append((hm.item(), fl.item()))
+    assert parts[-1][0] < 0.85 * parts[0][0] and parts[-1][1] < 0.85 * parts[0][1]
