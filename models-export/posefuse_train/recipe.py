@@ -81,7 +81,10 @@ def camera_config(recipe: dict) -> tuple[CameraNetConfig, TrainCameraConfig]:
     unknown = set(c) - _fields(TrainCameraConfig)
     if unknown:
         raise ValueError(f"[camera]: unknown keys {sorted(unknown)}")
-    return CameraNetConfig(**net), TrainCameraConfig(**_tuples(c))
+    train = TrainCameraConfig(**_tuples(c))
+    # a facing target needs the head it trains (docs/TRAINING.md, "Facing target")
+    net.setdefault("facing_head", train.facing_weight > 0)
+    return CameraNetConfig(**net), train
 
 
 def point_config(recipe: dict, fusion: bool) -> tuple[PointNetConfig, TrainPointConfig]:

@@ -284,3 +284,10 @@ def test_facing_nets_behind_another_camera_net_are_refused(synthetic_sets, unint
         fit(args(synthetic_sets, tmp_path / "mine", facing_from=other, work=work, resume=True))
     with pytest.raises(ValueError, match="no camera.pt"):
         fit(args(synthetic_sets, tmp_path / "x", facing_from=tmp_path / "nowhere"))
+
+
+def test_a_facing_weight_gives_the_camera_net_its_facing_head():
+    net, train = recipes.camera_config(recipes.load("cpu", ["camera.facing_weight=0.001"]))
+    assert net.facing_head and train.facing_weight == 0.001
+    net, train = recipes.camera_config(recipes.load("cpu", []))
+    assert not net.facing_head and train.facing_weight == 0.0
