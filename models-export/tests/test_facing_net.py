@@ -210,3 +210,28 @@ def test_cli_puts_the_facing_nets_in_front(tmp_path):
     with torch.no_grad():
         alone = lidar.eval()(torch.from_numpy(p))[0].numpy()
     assert not np.allclose(got, alone, atol=1e-3)
+
+
+class Constant(nn.Module):
+    """A second net that always answers a body facing `yaw` in its own input frame."""
+
+    def __init__(self, yaw: float, in_features: int):
+        super().__init__()
+        self.yaw = yaw
+        self.cfg = PointNetConfig(in_features=in_features, **SMALL)
+
+    def forward(self, points):
+        return body(self.yaw).repeat(points.shape[0], 1, 1), torch.zeros(points.shape[0], points.shape[1], K)
+
+
+@pytest.mark.parametrize("passes", [0, 1, 3])
+def test_each_pass_turns_the_points_by_the_facing_the_last_answer_had(passes):
+    """The first net says 30°; a second net that always answers 20° off its input frame moves the
+    frame by 20° per pass, and its last answer, turned back, faces 30° + 20° × (passes + 1)."""
+    first, second = Constant(math.radians(30), 3 + K), Constant(math.radians(20), 3 + K)
+    net = FacingPointNet(first, second, passes=passes).eval()
+    p = points(b=1)
+    with torch.no_grad():
+        kp, _ = net(p)
+    want = math.radians(30 + 20 * (passes + 1))
+    assert yaw_gap(yaw_of(*facing_cos_sin(kp)), want) < math.radians(0.5)
