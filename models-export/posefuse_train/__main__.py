@@ -59,7 +59,7 @@ def fit_parser() -> argparse.ArgumentParser:
         help="a finished fit's work directory, trained with --set point.rotate_deg=180: its point nets read "
         "the facing in front of this run's, so the bundle needs no box heading (docs/TRAINING.md)",
     )
-    p.add_argument("--facing-turns", type=int, default=4, help="turns the facing nets answer at")
+    p.add_argument("--facing-turns", type=int, default=1, help="turns the facing nets answer at")
     p.add_argument("--facing-passes", type=int, default=1, help="refinement passes inside the point networks")
     p.add_argument(
         "--facing-agree-deg",

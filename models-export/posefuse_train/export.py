@@ -246,7 +246,7 @@ def main(argv=None):
         "--facing-passes", type=int, default=1, help="refinement passes inside the graph (with --facing-*)"
     )
     p.add_argument(
-        "--facing-turns", type=int, default=4, help="turns of the input the facing nets answer at"
+        "--facing-turns", type=int, default=1, help="turns of the input the facing nets answer at"
     )
     p.add_argument(
         "--facing-agree-deg",

@@ -65,7 +65,7 @@ class FitArgs:
     # another run's work directory whose point nets (trained with rotation over [0, 2π)) read the
     # facing in front of this run's (docs/TRAINING.md, "A bundle that needs no heading")
     facing_from: Path | None = None
-    facing_turns: int = 4
+    facing_turns: int = 1
     facing_passes: int = 1
     facing_agree_deg: float = 0.0
 
