@@ -24,9 +24,13 @@ echo "== Python tests"
 # prints the reason of any skip, and under CI=true a skip not in .ci/allowed-skips fails the run
 # (scripts/pytest_ci_skips.py). tests/ros_logs reads the ROS 2 logs posefuse writes with the
 # official MCAP, ROS 2 and Foxglove readers.
+# Each run's temporary files live in this checkout's target/ (--basetemp, emptied at the start of
+# the run): two checkouts tested at once on one machine would otherwise share, and prune,
+# /tmp/pytest-of-$USER.
 export PYTHONPATH="$PWD/scripts${PYTHONPATH:+:$PYTHONPATH}"
-.venv/bin/python -m pytest -q -rs -p pytest_ci_skips models-export
-.venv/bin/python -m pytest -q -rs -p pytest_ci_skips clients/python deploy tests/ros_logs tests/ci
+mkdir -p target/pytest
+.venv/bin/python -m pytest -q -rs -p pytest_ci_skips --basetemp target/pytest/trainer models-export
+.venv/bin/python -m pytest -q -rs -p pytest_ci_skips --basetemp target/pytest/clients clients/python deploy tests/ros_logs tests/ci
 
 echo "== container"
 bash scripts/container-ci.sh

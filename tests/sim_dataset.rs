@@ -38,7 +38,8 @@ fn args(out: &Path) -> SimulateOptions {
 fn run_once() -> &'static PathBuf {
     static DIR: OnceLock<PathBuf> = OnceLock::new();
     DIR.get_or_init(|| {
-        let dir = tempfile::tempdir().unwrap().keep();
+        // Under cargo's per-target scratch folder: shared by the tests, so it is kept.
+        let dir = tempfile::Builder::new().tempdir_in(env!("CARGO_TARGET_TMPDIR")).unwrap().keep();
         simulate(args(&dir)).unwrap();
         dir
     })

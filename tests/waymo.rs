@@ -45,14 +45,20 @@ fn simulated(alt: bool) -> &'static Simulated {
     static ALTERNATE: OnceLock<Simulated> = OnceLock::new();
     let cell = if alt { &ALTERNATE } else { &DECLARED };
     cell.get_or_init(|| {
-        let root = tempfile::tempdir().unwrap().keep();
+        let root = kept_dir();
         let samples = simulate(&options(&root, alt), true).unwrap().remove(0);
         Simulated { root, samples }
     })
 }
 
+/// A directory that outlives its test (shared datasets, conversions whose paths are returned): under
+/// cargo's per-target scratch folder, so runs leave nothing behind in the system's temp folder.
+fn kept_dir() -> PathBuf {
+    tempfile::Builder::new().tempdir_in(env!("CARGO_TARGET_TMPDIR")).unwrap().keep()
+}
+
 fn convert_to(root: &Path, image_size: u32) -> (PathBuf, posefuse::waymo::convert::ConvertSummary) {
-    let out = tempfile::tempdir().unwrap().keep();
+    let out = kept_dir();
     let sum = convert(&ConvertOptions {
         dataset: root.to_path_buf(),
         out: out.clone(),
@@ -205,7 +211,8 @@ fn sparse_unordered_keypoints_as_real_labels() {
 #[test]
 fn missing_components_and_columns_are_named() {
     let sim = simulated(false);
-    let root = tempfile::tempdir().unwrap().keep();
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().to_path_buf();
     copy_dir(&sim.root, &root);
     let seg = segment_name(5, 0);
     // Optional components may go.
@@ -426,7 +433,8 @@ fn score_through_a_server_gives_the_in_process_predictions() {
 #[test]
 fn without_camera_keypoints_only_requests() {
     let sim = simulated(false);
-    let root = tempfile::tempdir().unwrap().keep();
+    let tmp = tempfile::tempdir().unwrap();
+    let root = tmp.path().to_path_buf();
     copy_dir(&sim.root, &root);
     std::fs::remove_dir_all(root.join(comp::CAMERA_HKP)).unwrap();
     std::fs::remove_dir_all(root.join(comp::LIDAR_POSE)).unwrap();
