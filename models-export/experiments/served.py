@@ -113,14 +113,15 @@ def over_seeds(seeds: list[dict], row: str, value) -> list[float | None]:
     return [value(s[row]) if row in s else None for s in seeds]
 
 
-def cell(values: list[float | None], scale: float, unit: str) -> str:
-    """`mean (a / b)`: the mean over seeds, then each seed's value."""
+def cell(values: list[float | None], scale: float, unit: str, signed: bool = False) -> str:
+    """`mean (a / b)`: the mean over seeds, then each seed's value; `signed` for differences."""
     known = [v for v in values if v is not None]
     if not known:
         return "-"
-    mean = scale * sum(known) / len(known)
-    each = " / ".join("-" if v is None else f"{scale * v:.2f}" for v in values)
-    return f"{mean:.2f}{unit} ({each})" if len(values) > 1 else f"{mean:.2f}{unit}"
+    fmt = "{:+.2f}" if signed else "{:.2f}"
+    mean = fmt.format(scale * sum(known) / len(known))
+    each = " / ".join("-" if v is None else fmt.format(scale * v) for v in values)
+    return f"{mean}{unit} ({each})" if len(values) > 1 else f"{mean}{unit}"
 
 
 def pct_cell(values):
@@ -133,7 +134,10 @@ def cm_cell(values):
 
 def diff_cell(a: list, b: list, scale: float, unit: str) -> str:
     return cell(
-        [x - y if x is not None and y is not None else None for x, y in zip(a, b, strict=True)], scale, unit
+        [x - y if x is not None and y is not None else None for x, y in zip(a, b, strict=True)],
+        scale,
+        unit,
+        True,
     )
 
 

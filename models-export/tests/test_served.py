@@ -140,12 +140,12 @@ def test_tables_average_the_seeds_and_show_each(tmp_path):
     line = next(x for x in m.splitlines() if x.startswith("| reg_seg |"))
     # fusion - LiDAR: +5 and +4 OKS points, -1 cm, wrist +15 points; LiDAR wrist/hip 0.5
     assert (
-        "| 4.50 pt (5.00 / 4.00) | -1.00 cm (-1.00 / -1.00) | 15.00 pt (15.00 / 15.00) | 0.50 (0.50 / 0.50) |"
-        in line
+        "| +4.50 pt (+5.00 / +4.00) | -1.00 cm (-1.00 / -1.00) | +15.00 pt (+15.00 / +15.00) "
+        "| 0.50 (0.50 / 0.50) |" in line
     )
     t2 = served.table2(seeds, "reg_seg")
     wrist = next(x for x in t2.splitlines() if x.startswith("| wrist |"))
-    assert "| 15.00 pt (15.00 / 15.00) | +16.60 pt |" in wrist
+    assert "| +15.00 pt (+15.00 / +15.00) | +16.60 pt |" in wrist
 
 
 def test_tables_cli_writes_markdown_and_names_runs_without_results(tmp_path):
