@@ -1,8 +1,10 @@
-"""Markdown for docs/RESULTS.md: our ablation beside the paper's Tables 1-3.
+"""Markdown for docs/RESULTS.md: our ablation beside the paper's Tables 1-3 on the clean profile.
+docs/RESULTS.md also holds hand-written sections on the street profiles: merge the output into it
+rather than overwrite it.
 
     python -m experiments.report runs/ablation/results.json --preface docs/results-convention.md \\
         --notes docs/results-analysis.md \\
-        --choices docs/results-choices.md --out docs/RESULTS.md
+        --choices docs/results-choices.md --out runs/ablation/RESULTS.md
 
 Without --out the markdown goes to standard output."""
 
