@@ -1,6 +1,7 @@
 import json
 import stat
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -155,3 +156,27 @@ def test_tables_cli_writes_markdown_and_names_runs_without_results(tmp_path):
     assert "Table 3" in out.read_text() and "| camera-only |" in out.read_text()
     with pytest.raises(SystemExit, match="empty"):
         served.main(["tables", "--data-name", "req", str(runs[0]), str(tmp_path / "empty")])
+
+
+def test_the_published_ablation_tables_are_the_committed_reports():
+    """docs/RESULTS.md's street-hard ablation tables are what `tables` renders from the served
+    reports committed beside it (docs/runs/street-hard/ablation), line for line."""
+    root = Path(__file__).resolve().parents[2]
+    results = (root / "docs" / "RESULTS.md").read_text()
+    runs = [root / "docs" / "runs" / "street-hard" / "ablation" / f"seed{s}" for s in (0, 2)]
+    for pair, noise in (("reg_seg", None), ("reg_seg_depth", None), ("reg_seg", "uniform")):
+        seeds = [served.load_rows(r, "hard_req_s3", noise) for r in runs]
+        assert all(len(s) == 7 for s in seeds), "three pairs in two modes, and the camera"
+        tables = [served.table3(seeds), served.margins(seeds)]
+        if noise is None:
+            tables.append(
+                served.table2(seeds, pair) if pair == "reg_seg_depth" else served.table1(seeds, pair)
+            )
+        for table in tables:
+            for line in table.splitlines()[2:]:
+                body = (
+                    line.split("|", 2)[2]
+                    if line.startswith("| LiDAR-only |") or line.startswith("| multi-modal |")
+                    else line
+                )
+                assert body in results, f"not in docs/RESULTS.md: {line}"
