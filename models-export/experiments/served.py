@@ -18,7 +18,7 @@ import subprocess
 import sys
 from pathlib import Path
 
-from experiments.report import PAPER_T1, PAPER_T2, PAPER_T3, md_table
+from experiments.report import PAPER_T1, PAPER_T2, PAPER_T3, md_table, part_oks
 from posefuse_train.keypoints import PARTS
 
 # Architecture rows as checkpoint suffixes: `fusion_<pair>.pt` and `lidar_<pair>.pt`.
@@ -103,12 +103,6 @@ def load_rows(run: Path, data_name: str, noise: str | None = None) -> dict:
     return rows
 
 
-def part_oks(metrics: dict, part: str, key: str = "per_keypoint_oks_3d") -> float | None:
-    vals = [metrics[key][i]["oks"] for i in PARTS[part]]
-    vals = [v for v in vals if v is not None]
-    return sum(vals) / len(vals) if vals else None
-
-
 def over_seeds(seeds: list[dict], row: str, value) -> list[float | None]:
     return [value(s[row]) if row in s else None for s in seeds]
 
@@ -132,6 +126,21 @@ def cm_cell(values):
     return cell(values, 100, " cm")
 
 
+def headline_cells(seeds: list[dict], row: str) -> list[str]:
+    """OKS@3D, MPJPE and OKS@2D of one row over the seeds."""
+    return [
+        pct_cell(over_seeds(seeds, row, lambda m: m["oks_acc_3d"])),
+        cm_cell(over_seeds(seeds, row, lambda m: m["mpjpe_3d_m"])),
+        pct_cell(over_seeds(seeds, row, lambda m: m["oks_acc_2d"])),
+    ]
+
+
+def ratio_to_hips(metrics: dict, part: str) -> float | None:
+    """A part's OKS@3D over the hips', the shape of the paper's LiDAR-only profile."""
+    num, hip = part_oks(metrics, part), part_oks(metrics, "hip")
+    return num / hip if num is not None and hip else None
+
+
 def diff_cell(a: list, b: list, scale: float, unit: str) -> str:
     return cell(
         [x - y if x is not None and y is not None else None for x, y in zip(a, b, strict=True)],
@@ -150,13 +159,7 @@ def table1(seeds: list[dict], pair: str) -> str:
         ("multi-modal", f"fusion_{pair}"),
     ):
         p = PAPER_T1[label]
-        body.append(
-            [label]
-            + [pct_cell(over_seeds(seeds, row, lambda m: m["oks_acc_3d"]))]
-            + [cm_cell(over_seeds(seeds, row, lambda m: m["mpjpe_3d_m"]))]
-            + [pct_cell(over_seeds(seeds, row, lambda m: m["oks_acc_2d"]))]
-            + [f"{p[0]:.2f} %", f"{p[1]:.2f} cm", f"{p[2]:.2f} %"]
-        )
+        body.append([label, *headline_cells(seeds, row), f"{p[0]:.2f} %", f"{p[1]:.2f} cm", f"{p[2]:.2f} %"])
     return md_table(header, body)
 
 
@@ -191,9 +194,7 @@ def table3(seeds: list[dict]) -> str:
             p = PAPER_T3.get(row)
             body.append(
                 [reg, seg, "✓" if modality == "fusion" else "", labels]
-                + [pct_cell(over_seeds(seeds, row, lambda m: m["oks_acc_3d"]))]
-                + [cm_cell(over_seeds(seeds, row, lambda m: m["mpjpe_3d_m"]))]
-                + [pct_cell(over_seeds(seeds, row, lambda m: m["oks_acc_2d"]))]
+                + headline_cells(seeds, row)
                 + [pct_cell(over_seeds(seeds, row, lambda m: m["pck_3d_10cm"]))]
                 + ([f"{p[0]:.2f} %", f"{p[1]:.2f} cm", f"{p[2]:.2f} %"] if p else ["-", "-", "-"])
             )
@@ -208,10 +209,6 @@ def margins(seeds: list[dict]) -> str:
         f, lid = f"fusion_{pair}", f"lidar_{pair}"
         if not any(f in s and lid in s for s in seeds):
             continue
-
-        def ratio(part, m):
-            return part_oks(m, part) / part_oks(m, "hip")
-
         body.append(
             [pair]
             + [diff_cell(*(over_seeds(seeds, r, lambda m: m["oks_acc_3d"]) for r in (f, lid)), 100, " pt")]
@@ -221,8 +218,8 @@ def margins(seeds: list[dict]) -> str:
                     *(over_seeds(seeds, r, lambda m: part_oks(m, "wrist")) for r in (f, lid)), 100, " pt"
                 )
             ]
-            + [cell(over_seeds(seeds, lid, lambda m: ratio("wrist", m)), 1, "")]
-            + [cell(over_seeds(seeds, lid, lambda m: ratio("elbow", m)), 1, "")]
+            + [cell(over_seeds(seeds, lid, lambda m: ratio_to_hips(m, "wrist")), 1, "")]
+            + [cell(over_seeds(seeds, lid, lambda m: ratio_to_hips(m, "elbow")), 1, "")]
         )
     return md_table(header, body)
 

@@ -180,3 +180,12 @@ def test_the_published_ablation_tables_are_the_committed_reports():
                     else line
                 )
                 assert body in results, f"not in docs/RESULTS.md: {line}"
+
+
+def test_a_profile_without_labelled_hips_is_a_gap_not_an_error():
+    m = metrics(0.5, 0.1, wrist=0.4, hip=0.8)
+    assert served.ratio_to_hips(m, "wrist") == 0.5
+    for i in PARTS["hip"]:
+        m["per_keypoint_oks_3d"][i]["oks"] = None
+    assert served.ratio_to_hips(m, "wrist") is None
+    assert served.cell([served.ratio_to_hips(m, "wrist")], 1, "") == "-"
