@@ -20,7 +20,7 @@ use std::io::Cursor;
 use std::sync::{Arc, OnceLock};
 
 use base64::Engine;
-use image::RgbImage;
+use image::{ImageBuffer, Rgb, RgbImage};
 
 use crate::error::{Error, Result};
 use crate::frame::{CameraCalibration, Frame, RgbPixels};
@@ -55,9 +55,9 @@ impl CameraImage {
 pub trait PixelSource: Send + Sync {
     /// Width and height in pixels.
     fn size(&self) -> (u32, u32);
-    /// The pixels of `r` (inside the image), row by row: `r.area() · 3` bytes, or why they
-    /// cannot be read.
-    fn read_rect(&self, r: PixelRect) -> std::result::Result<Vec<u8>, String>;
+    /// The pixels of `r` (inside the image) into `out` (`r.area() · 3` bytes, caller's: a buffer
+    /// kept from crop to crop is not faulted in anew), row by row, or why they cannot be read.
+    fn read_rect_into(&self, r: PixelRect, out: &mut [u8]) -> std::result::Result<(), String>;
 }
 
 /// One camera's image sent beside the frame rather than in it.
@@ -268,12 +268,11 @@ pub fn decode_crops(
             return crops.collect::<Result<_>>().map(Ok);
         }
         CameraImage::Rows(rows) => {
-            still_wanted()?;
-            let band = match read_region(rows.as_ref(), windows, width, height) {
-                Ok(band) => band,
-                Err(e) => return Err(Error::field("image_rgb", e)),
+            let crop = |t: &CropTransform| {
+                still_wanted()?;
+                crop_from_rows(rows.as_ref(), t, width, height).map_err(|e| Error::field("image_rgb", e))
             };
-            return windows.iter().map(|t| still_wanted().map(|()| band.crop(t))).collect::<Result<_>>().map(Ok);
+            return windows.iter().map(crop).collect::<Result<_>>().map(Ok);
         }
         CameraImage::Png(bytes) => {
             still_wanted()?;
@@ -308,21 +307,47 @@ pub fn decode_crops(
     Ok(Ok(crops.into_iter().zip(windows).map(|(c, t)| c.unwrap_or_else(|| black(t))).collect()))
 }
 
-/// The rectangle of `source` that the windows' crops read (`pipeline::pixel_region`), as a part
-/// of the image: a crop from it equals one from the whole image. When no window touches the
-/// image nothing is read (every crop is black).
-fn read_region(
+/// Scratch buffers kept for windows' pixels up to this size (a near person's window is about
+/// 1.5 MB); a larger window reads into a buffer of its own, so that no idle thread holds more.
+const KEPT_SCRATCH_BYTES: usize = 4 << 20;
+
+thread_local! {
+    // One per thread rather than one per crop: allocating and faulting in a fresh buffer cost
+    // as much as reading the pixels into it.
+    static SCRATCH: std::cell::RefCell<Vec<u8>> = const { std::cell::RefCell::new(Vec::new()) };
+}
+
+/// The crop of window `t` from pixels read on demand: only the window's own rectangle
+/// (`pipeline::pixel_region`) is read, so the crop equals one cut from the whole image, whatever
+/// the other windows are. A window that misses the image reads nothing and is black.
+fn crop_from_rows(
     source: &dyn PixelSource,
-    windows: &[CropTransform],
+    t: &CropTransform,
     width: u32,
     height: u32,
-) -> std::result::Result<DecodedImage, String> {
-    let Some(r) = pixel_region(windows, width, height) else {
-        return Ok(DecodedImage { image: RgbImage::new(0, 0), denominator: 1, origin: (0, 0) });
+) -> std::result::Result<RgbImage, String> {
+    let Some(r) = pixel_region(std::slice::from_ref(t), width, height) else {
+        return Ok(RgbImage::new(t.size, t.size));
     };
-    let pixels = source.read_rect(r)?;
-    let image = RgbImage::from_raw(r.x1 - r.x0, r.y1 - r.y0, pixels).ok_or("the pixels read have the wrong size")?;
-    Ok(DecodedImage { image, denominator: 1, origin: (r.x0, r.y0) })
+    let len = usize::try_from(r.area() * 3).map_err(|_| "the window is too large")?;
+    let crop = |buf: &mut Vec<u8>| {
+        // never shrunk: zeroing what is about to be overwritten costs as much as the read
+        if buf.len() < len {
+            buf.resize(len, 0);
+        }
+        let buf = &mut buf[..len];
+        source.read_rect_into(r, buf)?;
+        let view = ImageBuffer::<Rgb<u8>, &[u8]>::from_raw(r.x1 - r.x0, r.y1 - r.y0, &*buf)
+            .ok_or("the pixels read have the wrong size")?;
+        let mut s = *t;
+        s.x0 -= r.x0 as f64;
+        s.y0 -= r.y0 as f64;
+        Ok(crop_rgb(&view, &s))
+    };
+    SCRATCH.with(|cell| match cell.try_borrow_mut() {
+        Ok(mut kept) if len <= KEPT_SCRATCH_BYTES => crop(&mut kept),
+        _ => crop(&mut Vec::new()),
+    })
 }
 
 fn decode_with_image_crate(bytes: &[u8], format: image::ImageFormat) -> std::result::Result<DecodedImage, String> {
@@ -587,15 +612,16 @@ mod tests {
             self.image.dimensions()
         }
 
-        fn read_rect(&self, r: PixelRect) -> std::result::Result<Vec<u8>, String> {
+        fn read_rect_into(&self, r: PixelRect, out: &mut [u8]) -> std::result::Result<(), String> {
             self.rows_read.lock().unwrap().push(r);
-            let mut out = Vec::new();
-            for y in r.y0..r.y1 {
-                for x in r.x0..r.x1 {
-                    out.extend(self.image.get_pixel(x, y).0);
-                }
+            let pixels = (r.y0..r.y1).flat_map(|y| (r.x0..r.x1).flat_map(move |x| self.image.get_pixel(x, y).0));
+            let mut n = 0;
+            for (o, v) in out.iter_mut().zip(pixels) {
+                *o = v;
+                n += 1;
             }
-            Ok(out)
+            assert_eq!((n, out.len() as u64), (r.area() * 3, r.area() * 3), "the buffer fits the rectangle");
+            Ok(())
         }
     }
 
@@ -609,6 +635,7 @@ mod tests {
             vec![w(-30.0, -20.0, 100.0)],
             vec![w(600.0, 440.0, 150.0)],
             vec![w(700.0, 100.0, 50.0)],
+            vec![w(-200.0, -200.0, 900.0), w(700.0, 100.0, 50.0), w(100.0, 100.0, 30.0)],
             vec![],
         ];
         for windows in cases {
@@ -618,16 +645,27 @@ mod tests {
             let whole =
                 decode_crops(&CameraImage::Pixels(img.clone()), &windows, 640, 480, || Ok(())).unwrap().unwrap();
             assert_eq!(from_rows, whole, "{windows:?}");
+            // each window reads its own rectangle (not the union of all); a miss reads nothing
             let read = rows.rows_read.lock().unwrap().clone();
-            match crate::pipeline::pixel_region(&windows, 640, 480) {
-                // one read of the rectangle the crops need, not the whole image
-                Some(r) => {
-                    assert_eq!(read, vec![r], "{windows:?}");
-                    assert!(r.area() < 640 * 480, "{windows:?}: {r:?}");
-                }
-                None => assert!(read.is_empty(), "{windows:?}: nothing to read"),
-            }
+            let own: Vec<PixelRect> = windows
+                .iter()
+                .filter_map(|t| crate::pipeline::pixel_region(std::slice::from_ref(t), 640, 480))
+                .collect();
+            assert_eq!(read, own, "{windows:?}");
         }
+    }
+
+    #[test]
+    fn a_window_beyond_the_kept_scratch_reads_into_its_own_buffer() {
+        let (img, _) = pattern(1400, 1100);
+        let windows = [CropTransform { x0: -10.0, y0: -10.0, scale: 64.0 / 1420.0, size: 64 }];
+        let region = crate::pipeline::pixel_region(&windows, 1400, 1100).unwrap();
+        assert!(region.area() * 3 > KEPT_SCRATCH_BYTES as u64);
+        let rows = Arc::new(Counted { image: img.clone(), rows_read: Default::default() });
+        let from_rows = decode_crops(&CameraImage::Rows(rows), &windows, 1400, 1100, || Ok(())).unwrap().unwrap();
+        let whole = decode_crops(&CameraImage::Pixels(img), &windows, 1400, 1100, || Ok(())).unwrap().unwrap();
+        assert_eq!(from_rows, whole);
+        assert!(SCRATCH.with(|s| s.borrow().capacity()) <= KEPT_SCRATCH_BYTES, "no thread keeps it");
     }
 
     #[test]

@@ -1,7 +1,7 @@
 //! Camera input: a square crop around the person's 2D box, resized to S×S and normalized.
 
 use fast_image_resize::{images::Image, FilterType, PixelType, ResizeAlg, ResizeOptions, Resizer};
-use image::RgbImage;
+use image::{ImageBuffer, Rgb, RgbImage};
 use serde::{Deserialize, Serialize};
 
 use super::PipelineConfig;
@@ -50,7 +50,7 @@ impl CropTransform {
 /// The resize filter reads a few pixels beyond the window, so the source is the window plus a
 /// margin wider than the filter: the image itself when that fits inside it, otherwise a copy
 /// padded with black. Both give the same result wherever they both apply.
-pub fn crop_rgb(image: &RgbImage, t: &CropTransform) -> RgbImage {
+pub fn crop_rgb<C: std::ops::Deref<Target = [u8]>>(image: &ImageBuffer<Rgb<u8>, C>, t: &CropTransform) -> RgbImage {
     let s = t.size;
     let side = t.side();
     let mut out = RgbImage::new(s, s);

@@ -67,20 +67,22 @@ impl PixelSource for SharedPixels {
 
     /// One positioned read for whole rows, else one per row: the crops' pixels only, rather than
     /// whole rows that would have to be faulted in and copied.
-    fn read_rect(&self, r: PixelRect) -> std::result::Result<Vec<u8>, String> {
-        let (x1, y1) = (r.x1.min(self.width), r.y1.min(self.height));
-        let (x0, y0) = (r.x0.min(x1), r.y0.min(y1));
-        let row = (x1 - x0) as usize * 3;
-        let mut out = vec![0u8; row * (y1 - y0) as usize];
-        let at = |y: u32| self.at.offset + (u64::from(y) * u64::from(self.width) + u64::from(x0)) * 3;
-        let read = if (x0, x1) == (0, self.width) || row == 0 {
-            self.region.read_into(IMAGE_RGB, at(y0), &mut out)
+    fn read_rect_into(&self, r: PixelRect, out: &mut [u8]) -> std::result::Result<(), String> {
+        if r.x0 > r.x1 || r.y0 > r.y1 || r.x1 > self.width || r.y1 > self.height {
+            return Err(format!("rectangle {r:?} is not inside the {}×{} image", self.width, self.height));
+        }
+        if out.len() as u64 != r.area() * 3 {
+            return Err(format!("{} bytes asked for rectangle {r:?}", out.len()));
+        }
+        let row = (r.x1 - r.x0) as usize * 3;
+        let at = |y: u32| self.at.offset + (u64::from(y) * u64::from(self.width) + u64::from(r.x0)) * 3;
+        let read = if (r.x0, r.x1) == (0, self.width) || row == 0 {
+            self.region.read_into(IMAGE_RGB, at(r.y0), out)
         } else {
-            let mut rows = out.chunks_exact_mut(row).zip(y0..y1);
+            let mut rows = out.chunks_exact_mut(row).zip(r.y0..r.y1);
             rows.try_for_each(|(dst, y)| self.region.read_into(IMAGE_RGB, at(y), dst))
         };
-        read.map_err(|e| e.to_string())?;
-        Ok(out)
+        read.map_err(|e| e.to_string())
     }
 }
 
@@ -168,6 +170,12 @@ mod tests {
     use super::*;
     use crate::server::kserve::shared_memory::SharedMemoryConfig;
 
+    /// The pixels of `r` as a new buffer.
+    fn read(pixels: &dyn PixelSource, r: PixelRect) -> std::result::Result<Vec<u8>, String> {
+        let mut out = vec![0u8; r.area() as usize * 3];
+        pixels.read_rect_into(r, &mut out).map(|()| out)
+    }
+
     fn memory(dir: &std::path::Path) -> SystemSharedMemory {
         let m = SystemSharedMemory::new(SharedMemoryConfig { enabled: true, dir: dir.into(), max_regions: 4 });
         let mut bytes = vec![9u8; 6];
@@ -200,9 +208,9 @@ mod tests {
         let pixels = pixels.unwrap();
         assert_eq!(pixels.size(), (2, 1));
         let rect = |x0, y0, x1, y1| PixelRect { x0, y0, x1, y1 };
-        assert_eq!(pixels.read_rect(rect(0, 0, 2, 1)).unwrap(), vec![9; 6]);
-        assert_eq!(pixels.read_rect(rect(1, 0, 2, 1)).unwrap(), vec![9; 3]);
-        assert_eq!(pixels.read_rect(rect(0, 1, 2, 1)).unwrap(), Vec::<u8>::new());
+        assert_eq!(read(pixels.as_ref(), rect(0, 0, 2, 1)).unwrap(), vec![9; 6]);
+        assert_eq!(read(pixels.as_ref(), rect(1, 0, 2, 1)).unwrap(), vec![9; 3]);
+        assert_eq!(read(pixels.as_ref(), rect(0, 1, 2, 1)).unwrap(), Vec::<u8>::new());
         assert!(matches!(read_inputs(&m, shared, 17), Err(Error::PayloadTooLarge { limit: 17 })));
         for bad in [
             input("image_rgb", DataType::U8, &[1, 2, 3], 0, 5),
@@ -242,9 +250,14 @@ mod tests {
                 .collect()
         };
         for r in [rect(1, 1, 3, 3), rect(0, 1, 4, 3), rect(2, 0, 3, 1), rect(0, 0, 4, 3), rect(3, 2, 4, 3)] {
-            assert_eq!(pixels.read_rect(r).unwrap(), expect(r), "{r:?}");
+            assert_eq!(read(pixels.as_ref(), r).unwrap(), expect(r), "{r:?}");
         }
-        assert_eq!(pixels.read_rect(rect(2, 1, 2, 3)).unwrap(), Vec::<u8>::new(), "no column");
+        assert_eq!(read(pixels.as_ref(), rect(2, 1, 2, 3)).unwrap(), Vec::<u8>::new(), "no column");
+        for outside in [rect(3, 0, 5, 1), rect(0, 2, 1, 4), rect(2, 0, 1, 1), rect(0, 2, 1, 1)] {
+            assert!(read(pixels.as_ref(), outside).unwrap_err().contains("not inside"), "{outside:?}");
+        }
+        let mut short = vec![0u8; 5];
+        assert!(pixels.read_rect_into(rect(0, 0, 2, 1), &mut short).unwrap_err().contains("5 bytes"));
     }
 
     #[test]
