@@ -251,8 +251,9 @@ fn mode_plan(plan: &DecodePlan, bytes: &[u8]) -> std::result::Result<DecodePlan,
 
 /// The crop of each window, each cut from `image` decoded at the window's own DCT scale (see the
 /// module docs): the same crop whatever the other windows are, so crops may be cut again later
-/// from the same image, some at a time. One decoded image is held at a time; `still_wanted` is
-/// asked before each pass and each crop (a frame may cut hundreds, none cheap).
+/// from the same image, some at a time. The passes run side by side (`side_by_side`), so their
+/// decoded images are held together; `still_wanted` is asked before the passes and before each
+/// crop (a frame may cut hundreds, none cheap).
 pub fn decode_crops(
     image: &CameraImage,
     windows: &[CropTransform],
@@ -289,13 +290,10 @@ pub fn decode_crops(
     let passes = plan_passes(windows, width, height);
     // the pass reaching lowest reads on to the end: the fewest rows read only to check them
     let last = (0..passes.len()).max_by_key(|&i| passes[i].plan.region.map_or(0, |r| r.y1)).unwrap_or(0);
-    for (i, pass) in passes.iter().enumerate() {
-        still_wanted()?;
-        let plan = match mode_plan(&pass.plan, bytes) {
-            Ok(p) => p,
-            Err(e) => return Ok(Err(e)),
-        };
-        let img = match decode_planned(bytes, &plan, i == last) {
+    still_wanted()?;
+    let decode = |i: usize| mode_plan(&passes[i].plan, bytes).and_then(|plan| decode_planned(bytes, &plan, i == last));
+    for (pass, img) in passes.iter().zip(side_by_side(passes.len(), &decode)) {
+        let img = match img {
             Ok(img) => img,
             Err(e) => return Ok(Err(e)),
         };
@@ -305,6 +303,32 @@ pub fn decode_crops(
         }
     }
     Ok(Ok(crops.into_iter().zip(windows).map(|(c, t)| c.unwrap_or_else(|| black(t))).collect()))
+}
+
+/// `work(0)` … `work(n − 1)`, in order, the first on this thread and each other on a thread of
+/// its own (inline when none can be started). A frame's decode passes are independent decodes of
+/// the same bytes, so a frame of mixed scales takes its longest pass rather than their sum; there
+/// are at most `CROP_DENOMINATORS.len()` of them, so a frame starts at most two threads.
+fn side_by_side<T: Send>(
+    n: usize,
+    work: &(impl Fn(usize) -> std::result::Result<T, String> + Sync),
+) -> Vec<std::result::Result<T, String>> {
+    std::thread::scope(|s| {
+        let others: Vec<_> = (1..n)
+            .map(|i| {
+                std::thread::Builder::new()
+                    .name("posefuse-decode".into())
+                    .spawn_scoped(s, move || work(i))
+                    .map_err(|_| i)
+            })
+            .collect();
+        let first = (n > 0).then(|| work(0));
+        let joined = others.into_iter().map(|h| match h {
+            Ok(h) => h.join().unwrap_or_else(|_| Err("decoder failed".into())),
+            Err(i) => work(i),
+        });
+        first.into_iter().chain(joined).collect()
+    })
 }
 
 /// Scratch buffers kept for windows' pixels up to this size (a near person's window is about
@@ -653,6 +677,28 @@ mod tests {
                 .collect();
             assert_eq!(read, own, "{windows:?}");
         }
+    }
+
+    #[test]
+    fn passes_side_by_side_answer_in_order_each_beside_the_first() {
+        let caller = std::thread::current().id();
+        let ran_on = std::sync::Mutex::new(Vec::new());
+        let work = |i: usize| {
+            ran_on.lock().unwrap().push((i, std::thread::current().id()));
+            if i == 2 {
+                Err(format!("pass {i} failed"))
+            } else {
+                Ok(i * 10)
+            }
+        };
+        assert_eq!(side_by_side(4, &work), vec![Ok(0), Ok(10), Err("pass 2 failed".into()), Ok(30)]);
+        let mut ran = ran_on.lock().unwrap().clone();
+        ran.sort_by_key(|r| r.0);
+        assert_eq!(ran.iter().map(|r| r.0).collect::<Vec<_>>(), vec![0, 1, 2, 3], "each pass once");
+        assert_eq!(ran[0].1, caller, "the first pass on the caller's thread");
+        let others: std::collections::HashSet<_> = ran[1..].iter().map(|r| r.1).collect();
+        assert!(!others.contains(&caller) && others.len() == 3, "the others each on a thread of its own");
+        assert!(side_by_side(0, &work).is_empty());
     }
 
     #[test]
