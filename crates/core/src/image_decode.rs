@@ -715,6 +715,22 @@ mod tests {
     }
 
     #[test]
+    fn a_near_persons_window_is_read_into_the_buffer_its_thread_keeps() {
+        // a 1,000 px window on a 1920×1280 frame: 3 MB of pixels, kept for the next request
+        let (img, _) = pattern(1920, 1280);
+        let windows = [CropTransform { x0: 400.0, y0: 100.0, scale: 64.0 / 1000.0, size: 64 }];
+        let bytes = crate::pipeline::pixel_region(&windows, 1920, 1280).unwrap().area() as usize * 3;
+        assert!(bytes > 3_000_000);
+        let rows = Arc::new(Counted { image: img.clone(), rows_read: Default::default() });
+        let from_rows = decode_crops(&CameraImage::Rows(rows), &windows, 1920, 1280, || Ok(())).unwrap().unwrap();
+        assert_eq!(
+            from_rows,
+            decode_crops(&CameraImage::Pixels(img), &windows, 1920, 1280, || Ok(())).unwrap().unwrap()
+        );
+        assert!(SCRATCH.with(|s| s.borrow().len()) >= bytes, "the thread keeps the window's buffer");
+    }
+
+    #[test]
     fn rows_are_checked_against_the_calibration_and_sent_once() {
         let c = CameraCalibration { intrinsic: vec![500.0; 9], extrinsic: vec![0.0; 16], width: 640, height: 480 };
         let rows = |w, h| {
