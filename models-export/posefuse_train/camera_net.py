@@ -2,7 +2,9 @@
 and a sigmoid) predicting K keypoint heatmaps. Three deconvolutions give heatmaps at a quarter of the
 input resolution, as in the paper; a fourth, or a last conv whose 2x2 sub-cells a pixel shuffle lays
 out (`final_shuffle`), gives half, which is how a small crop still gets a grid fine enough to tell
-neighbouring LiDAR points apart (docs/TRAINING.md, "Heatmap resolution")."""
+neighbouring LiDAR points apart (docs/TRAINING.md, "Heatmap resolution"). Each deconvolution can be
+a 3x3 convolution and a pixel shuffle instead (`upsample = "shuffle"`), which INT8 kernels cover
+(docs/TRAINING.md, "Upsampling")."""
 
 from __future__ import annotations
 
@@ -122,6 +124,28 @@ def check_heatmap_size(image_size: int, heatmap_size: int, cfg: CameraNetConfig)
         )
 
 
+UPSAMPLING = ("deconv", "shuffle")
+
+
+def upsampling_stage(cin: int, cout: int, kind: str) -> list[nn.Module]:
+    """One stride-2 upsampling stage. "shuffle" puts BatchNorm and ReLU before the pixel shuffle so
+    that both fold into the convolution, leaving a graph of convolutions and one rearrangement."""
+    if kind == "deconv":
+        return [
+            nn.ConvTranspose2d(cin, cout, 4, 2, 1, bias=False),
+            nn.BatchNorm2d(cout),
+            nn.ReLU(inplace=True),
+        ]
+    if kind == "shuffle":
+        return [
+            nn.Conv2d(cin, 4 * cout, 3, 1, 1, bias=False),
+            nn.BatchNorm2d(4 * cout),
+            nn.ReLU(inplace=True),
+            nn.PixelShuffle(2),
+        ]
+    raise ValueError(f"upsample must be one of {UPSAMPLING}, not {kind!r}")
+
+
 class CameraNet(nn.Module):
     def __init__(self, cfg: CameraNetConfig):
         super().__init__()
@@ -129,11 +153,7 @@ class CameraNet(nn.Module):
         self.backbone = ResNet(cfg.backbone)
         layers, cin = [], self.backbone.out_channels
         for _ in range(cfg.deconv_layers):
-            layers += [
-                nn.ConvTranspose2d(cin, cfg.deconv_channels, 4, 2, 1, bias=False),
-                nn.BatchNorm2d(cfg.deconv_channels),
-                nn.ReLU(inplace=True),
-            ]
+            layers += upsampling_stage(cin, cfg.deconv_channels, cfg.upsample)
             cin = cfg.deconv_channels
         self.deconv = nn.Sequential(*layers)
         self.final = nn.Conv2d(cin, K * cfg.final_shuffle**2, 1)

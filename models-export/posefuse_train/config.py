@@ -86,6 +86,10 @@ class CameraNetConfig:
     # > 1: the last 1x1 conv predicts final_shuffle² sub-cells per cell, rearranged into a grid that
     # much finer (sub-pixel convolution): a finer heatmap for the price of a wider 1x1 conv.
     final_shuffle: int = 1
+    # How each stride-2 upsampling stage is made: "deconv" (a 4x4 transposed convolution, as the
+    # paper's SimpleBaseline) or "shuffle" (a 3x3 convolution to 4x the channels and a pixel
+    # shuffle), which ONNX Runtime's INT8 kernels cover (docs/TRAINING.md, "Upsampling").
+    upsample: str = "deconv"
     # A training-only head on the pooled backbone features: does the person face the camera (from
     # the 2D labels' left and right)? Not exported; docs/TRAINING.md "Facing target".
     facing_head: bool = False

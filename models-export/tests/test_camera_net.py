@@ -1,21 +1,35 @@
 import pytest
 import torch
+from torch import nn
 
 from posefuse_train.camera_net import CameraNet, check_heatmap_size, deconv_layers_for, predicted_heatmap_size
 from posefuse_train.config import CameraNetConfig
 from posefuse_train.keypoints import K
 
 
+@pytest.mark.parametrize("upsample", ["deconv", "shuffle"])
 @pytest.mark.parametrize(
     ("layers", "shuffle", "side"),
     [(3, 1, 16), (4, 1, 32), (3, 2, 32), (2, 2, 16)],
 )
-def test_the_heatmap_side_is_what_the_config_says(layers, shuffle, side):
-    cfg = CameraNetConfig(deconv_channels=8, deconv_layers=layers, final_shuffle=shuffle)
+def test_the_heatmap_side_is_what_the_config_says(layers, shuffle, side, upsample):
+    cfg = CameraNetConfig(deconv_channels=8, deconv_layers=layers, final_shuffle=shuffle, upsample=upsample)
     assert predicted_heatmap_size(64, cfg) == side
     assert deconv_layers_for(64, side, shuffle) == layers
     with torch.no_grad():
         assert CameraNet(cfg).eval()(torch.zeros(1, 3, 64, 64)).shape == (1, K, side, side)
+
+
+def test_each_upsampling_stage_is_the_kind_asked_for():
+    """ "shuffle" stages hold no transposed convolution, and their BatchNorm sits before the pixel
+    shuffle, on the convolution's own channels, so that export folds it into the convolution."""
+    deconv = CameraNet(CameraNetConfig(deconv_channels=8, deconv_layers=2))
+    shuffle = CameraNet(CameraNetConfig(deconv_channels=8, deconv_layers=2, upsample="shuffle"))
+    assert [type(m) for m in deconv.deconv] == [nn.ConvTranspose2d, nn.BatchNorm2d, nn.ReLU] * 2
+    assert [type(m) for m in shuffle.deconv] == [nn.Conv2d, nn.BatchNorm2d, nn.ReLU, nn.PixelShuffle] * 2
+    assert shuffle.deconv[0].out_channels == shuffle.deconv[1].num_features == 4 * 8
+    with pytest.raises(ValueError, match="upsample must be one of"):
+        CameraNet(CameraNetConfig(upsample="bilinear"))
 
 
 def test_sub_cells_land_where_pixel_shuffle_puts_them():

@@ -150,6 +150,9 @@ def test_the_builtin_recipes_load_and_overrides_are_checked():
     for bad in ("camera.nope=1", "camera=1", "nosuch.steps=1"):
         with pytest.raises(ValueError):
             recipes.load("cpu", [bad])
+    assert recipes.camera_config(recipes.load("cpu", ["camera.upsample=shuffle"]))[0].upsample == "shuffle"
+    with pytest.raises(ValueError, match="upsample: one of"):
+        recipes.load("cpu", ["camera.upsample=bilinear"])
     with pytest.raises(ValueError, match="no recipe"):
         recipes.load("nosuch")
 

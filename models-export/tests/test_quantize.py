@@ -12,6 +12,8 @@ from test_export import small_models
 
 from posefuse_train import quantize
 from posefuse_train.bundle_eval import held_out, normalize, sessions
+from posefuse_train.camera_net import CameraNet
+from posefuse_train.config import CameraNetConfig
 from posefuse_train.data import read_meta
 from posefuse_train.export import export_bundle
 from posefuse_train.shards import ShardSet
@@ -51,3 +53,24 @@ def test_the_int8_variant_is_declared_close_and_served_by_precision(synthetic_se
     # --default makes INT8 the bundle's own precision
     quantize.main([*args, "--default"])
     assert json.loads((bundle / "manifest.json").read_text())["precision"] == "int8"
+
+
+@pytest.mark.parametrize(("upsample", "float_ops"), [("deconv", {"ConvTranspose"}), ("shuffle", set())])
+def test_only_a_shuffle_upsampled_camera_quantizes_every_conv(synthetic_sets, tmp_path, upsample, float_ops):
+    """docs/TRAINING.md, "Upsampling": ONNX Runtime has no INT8 transposed convolution, so a
+    deconvolution head stays float32 between a dequantize and a quantize; sub-pixel stages leave
+    no float convolution and only the pixel shuffle itself outside INT8."""
+    _, cfg = read_meta(synthetic_sets[0])
+    bundle = tmp_path / upsample
+    _, fusion, lidar = small_models(cfg)
+    torch.manual_seed(1)
+    cam = CameraNet(CameraNetConfig(backbone="resnet18-w16", deconv_channels=16, upsample=upsample))
+    with torch.no_grad():
+        for p in cam.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    export_bundle(bundle, cam, fusion, lidar, cfg, trained=False)
+    quantize.quantize_camera(bundle, synthetic_sets[0], count=64)
+    ops = [n.op_type for n in onnx.load(str(bundle / quantize.FILE)).graph.node]
+    assert {"Conv", "ConvTranspose"} & set(ops) == float_ops
+    assert ops.count("QLinearConv") == sum(isinstance(m, torch.nn.Conv2d) for m in cam.modules())
+    assert ops.count("DepthToSpace") == (3 if upsample == "shuffle" else 0)
