@@ -65,8 +65,9 @@ def model_file(spec: dict, precision: str | None) -> str:
 
 def sessions(bundle: Path, threads: int = 1, precision: str | None = None) -> dict:
     """One session per network; `precision` picks the camera's variant (as `posefuse serve
-    --precision`), the point networks have none."""
+    --precision`: without it, the manifest's own `precision`), the point networks have none."""
     manifest = json.loads((Path(bundle) / "manifest.json").read_text())
+    precision = precision or manifest.get("precision")
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = threads
     return {

@@ -50,9 +50,13 @@ def test_the_int8_variant_is_declared_close_and_served_by_precision(synthetic_se
     assert r8["lidar"] == r32["lidar"] and r8["camera"] != r32["camera"]
     with pytest.raises(SystemExit, match="no fp16 variant"):
         sessions(bundle, precision="fp16")
-    # --default makes INT8 the bundle's own precision
+    # --default makes INT8 the bundle's own precision, which evaluation then runs unless asked
     quantize.main([*args, "--default"])
     assert json.loads((bundle / "manifest.json").read_text())["precision"] == "int8"
+    (d8,) = sessions(bundle)["camera"].run(None, {"image": x})
+    (d32,) = sessions(bundle, precision="fp32")["camera"].run(None, {"image": x})
+    assert np.array_equal(d32, h32) and not np.array_equal(d8, h32)
+    assert held_out(bundle, ShardSet(synthetic_sets[1]))["camera"] != r32["camera"]
 
 
 @pytest.mark.parametrize(("upsample", "float_ops"), [("deconv", {"ConvTranspose"}), ("shuffle", set())])
