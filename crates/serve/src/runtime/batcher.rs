@@ -17,6 +17,7 @@ use tokio::sync::oneshot;
 use super::bundle::{Bundle, ModelKind};
 use super::gate::Gate;
 use super::models::Models;
+use super::precision::Precision;
 use posefuse_core::error::{Error, Result};
 
 /// Thread and queue settings of the runtime.
@@ -123,7 +124,7 @@ impl Runtime {
     /// Loads and validates the bundle in `model_dir` and starts a runtime on it (blocking:
     /// builds the sessions).
     pub fn load(model_dir: &std::path::Path, cfg: &RuntimeConfig) -> Result<Arc<Runtime>> {
-        let bundle = Arc::new(Bundle::load_at(model_dir, cfg.precision)?);
+        let bundle = Arc::new(Bundle::load_at(model_dir, Precision::asked_on(cfg.precision, cfg.device))?);
         if bundle.trained() == Some(false) {
             tracing::warn!(bundle = %model_dir.display(), "serving an UNTRAINED bundle (tests only)");
         }

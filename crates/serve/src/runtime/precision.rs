@@ -8,6 +8,8 @@ use std::str::FromStr;
 
 use serde::{Deserialize, Serialize};
 
+use super::device::Device;
+
 /// A network's numeric precision.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
@@ -24,6 +26,16 @@ impl Precision {
             Precision::Fp32 => "fp32",
             Precision::Int8 => "int8",
         }
+    }
+
+    /// The precision a runtime on `device` asks the bundle for (None: the manifest's). INT8
+    /// variants are ONNX Runtime's CPU kernels (QOperator), which the CUDA execution provider would
+    /// run on the CPU between copies, so on a GPU float32 is served unless INT8 is asked for.
+    pub fn asked_on(asked: Option<Precision>, device: Device) -> Option<Precision> {
+        asked.or(match device {
+            Device::Cuda(_) => Some(Precision::Fp32),
+            Device::Cpu => None,
+        })
     }
 }
 
@@ -57,5 +69,15 @@ mod tests {
         }
         assert_eq!(" INT8 ".parse::<Precision>(), Ok(Precision::Int8));
         assert!("fp16".parse::<Precision>().unwrap_err().contains("fp32 or int8"));
+    }
+
+    #[test]
+    fn a_gpu_serves_float32_unless_int8_is_asked_and_a_cpu_leaves_it_to_the_manifest() {
+        assert_eq!(Precision::asked_on(None, Device::Cpu), None);
+        assert_eq!(Precision::asked_on(None, Device::Cuda(1)), Some(Precision::Fp32));
+        for p in [Precision::Fp32, Precision::Int8] {
+            assert_eq!(Precision::asked_on(Some(p), Device::Cpu), Some(p));
+            assert_eq!(Precision::asked_on(Some(p), Device::Cuda(0)), Some(p));
+        }
     }
 }
