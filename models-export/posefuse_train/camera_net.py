@@ -124,9 +124,6 @@ def check_heatmap_size(image_size: int, heatmap_size: int, cfg: CameraNetConfig)
         )
 
 
-UPSAMPLING = ("deconv", "shuffle")
-
-
 def upsampling_stage(cin: int, cout: int, kind: str) -> list[nn.Module]:
     """One stride-2 upsampling stage. "shuffle" puts BatchNorm and ReLU before the pixel shuffle so
     that both fold into the convolution, leaving a graph of convolutions and one rearrangement."""
@@ -136,14 +133,12 @@ def upsampling_stage(cin: int, cout: int, kind: str) -> list[nn.Module]:
             nn.BatchNorm2d(cout),
             nn.ReLU(inplace=True),
         ]
-    if kind == "shuffle":
-        return [
-            nn.Conv2d(cin, 4 * cout, 3, 1, 1, bias=False),
-            nn.BatchNorm2d(4 * cout),
-            nn.ReLU(inplace=True),
-            nn.PixelShuffle(2),
-        ]
-    raise ValueError(f"upsample must be one of {UPSAMPLING}, not {kind!r}")
+    return [  # "shuffle" (CameraNetConfig admits no other kind)
+        nn.Conv2d(cin, 4 * cout, 3, 1, 1, bias=False),
+        nn.BatchNorm2d(4 * cout),
+        nn.ReLU(inplace=True),
+        nn.PixelShuffle(2),
+    ]
 
 
 class CameraNet(nn.Module):

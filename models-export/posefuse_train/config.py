@@ -78,6 +78,9 @@ class PipelineConfig:
         return d
 
 
+UPSAMPLING = ("deconv", "shuffle")
+
+
 @dataclass
 class CameraNetConfig:
     backbone: str = "resnet18-w16"  # see camera_net.BACKBONES
@@ -93,6 +96,11 @@ class CameraNetConfig:
     # A training-only head on the pooled backbone features: does the person face the camera (from
     # the 2D labels' left and right)? Not exported; docs/TRAINING.md "Facing target".
     facing_head: bool = False
+
+    def __post_init__(self):
+        # refused here, so that a recipe fails when it loads rather than when the net is built
+        if self.upsample not in UPSAMPLING:
+            raise ValueError(f"upsample must be one of {UPSAMPLING}, not {self.upsample!r}")
 
 
 @dataclass

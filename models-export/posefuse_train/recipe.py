@@ -10,7 +10,6 @@ import json
 import sys
 from pathlib import Path
 
-from .camera_net import UPSAMPLING
 from .config import CameraNetConfig, PointNetConfig
 from .keypoints import K
 from .train import TrainCameraConfig, TrainPointConfig
@@ -83,8 +82,6 @@ def camera_config(recipe: dict) -> tuple[CameraNetConfig, TrainCameraConfig]:
     if unknown:
         raise ValueError(f"[camera]: unknown keys {sorted(unknown)}")
     train = TrainCameraConfig(**_tuples(c))
-    if net.get("upsample", "deconv") not in UPSAMPLING:
-        raise ValueError(f"[camera] upsample: one of {list(UPSAMPLING)}, not {net['upsample']!r}")
     # a facing target needs the head it trains (docs/TRAINING.md, "Facing target")
     net.setdefault("facing_head", train.facing_weight > 0)
     return CameraNetConfig(**net), train

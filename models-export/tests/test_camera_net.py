@@ -29,7 +29,7 @@ def test_each_upsampling_stage_is_the_kind_asked_for():
     assert [type(m) for m in shuffle.deconv] == [nn.Conv2d, nn.BatchNorm2d, nn.ReLU, nn.PixelShuffle] * 2
     assert shuffle.deconv[0].out_channels == shuffle.deconv[1].num_features == 4 * 8
     with pytest.raises(ValueError, match="upsample must be one of"):
-        CameraNet(CameraNetConfig(upsample="bilinear"))
+        CameraNetConfig(upsample="bilinear")
 
 
 def test_sub_cells_land_where_pixel_shuffle_puts_them():

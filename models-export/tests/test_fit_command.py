@@ -151,7 +151,7 @@ def test_the_builtin_recipes_load_and_overrides_are_checked():
         with pytest.raises(ValueError):
             recipes.load("cpu", [bad])
     assert recipes.camera_config(recipes.load("cpu", ["camera.upsample=shuffle"]))[0].upsample == "shuffle"
-    with pytest.raises(ValueError, match="upsample: one of"):
+    with pytest.raises(ValueError, match="upsample must be one of"):
         recipes.load("cpu", ["camera.upsample=bilinear"])
     with pytest.raises(ValueError, match="no recipe"):
         recipes.load("nosuch")
