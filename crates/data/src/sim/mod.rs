@@ -2,6 +2,7 @@
 
 pub mod body;
 pub mod dataset;
+pub mod hands;
 pub mod labels;
 pub mod lidar;
 pub mod math;

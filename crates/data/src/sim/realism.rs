@@ -24,6 +24,9 @@ pub enum Effect {
     ArmsIn,
     /// The 3D keypoint labels carry a human labeller's error (`dataset.rs`); 2D labels already do.
     LabelNoise,
+    /// Forearms that taper to the wrist and flat hands: a wrist catches as few returns as a real
+    /// one (`hands.rs`).
+    SlimHands,
 }
 
 /// The set of effects a simulation runs with.
@@ -53,8 +56,15 @@ impl Realism {
     }
 }
 
-const ALL: [Effect; 6] =
-    [Effect::Dress, Effect::MixedPixels, Effect::Footprint, Effect::Reflectivity, Effect::ArmsIn, Effect::LabelNoise];
+const ALL: [Effect; 7] = [
+    Effect::Dress,
+    Effect::MixedPixels,
+    Effect::Footprint,
+    Effect::Reflectivity,
+    Effect::ArmsIn,
+    Effect::LabelNoise,
+    Effect::SlimHands,
+];
 
 impl From<Profile> for Realism {
     fn from(p: Profile) -> Realism {
@@ -73,7 +83,10 @@ mod tests {
         let r = Realism::of(Profile::Street, &[Effect::LabelNoise, Effect::Footprint, Effect::Footprint]);
         assert_eq!(r.effects(), [Effect::Dress, Effect::MixedPixels, Effect::Footprint, Effect::LabelNoise]);
         assert!(r.has(Effect::Footprint) && !r.has(Effect::ArmsIn));
-        assert_eq!(ALL.len(), Effect::ArmsIn as usize + 2);
+        assert_eq!(ALL.len(), Effect::SlimHands as usize + 1);
+        assert!(ALL.len() <= 8, "effects are bits of a u8");
+        let all = ALL.iter().fold(Realism::default(), |r, &e| r.with(e));
+        assert_eq!(all.effects(), ALL);
         let hard = Realism::from(Profile::StreetHard);
         // dataset.json spells the profile as the command line does.
         assert_eq!(serde_json::to_string(&Profile::StreetHard).ok().as_deref(), Some("\"street-hard\""));

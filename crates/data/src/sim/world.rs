@@ -7,6 +7,7 @@ use rand::Rng;
 use rand_distr::{Distribution, LogNormal};
 
 use super::body::{Anthro, Part, Skeleton};
+use super::hands::slim_hands;
 use super::math::{add, dot, norm, rot_z, sub, V3};
 use super::poses::{sample_person, Activity, PersonModel, Slot};
 use super::raycast::Shape;
@@ -403,6 +404,9 @@ fn place_person<R: Rng>(
     let mut model = sample_person(rng, anthro, realism.has(Effect::ArmsIn));
     if realism.has(Effect::Dress) {
         dress(rng, &mut model);
+    }
+    if realism.has(Effect::SlimHands) {
+        slim_hands(&mut model);
     }
     let fr = footprint_radius(model.activity);
     let cam = camera.position();
