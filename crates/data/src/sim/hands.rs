@@ -9,7 +9,7 @@
 //! hand. No random numbers are drawn, so the persons, poses and labels stay those of the same seed
 //! without the effect.
 
-use super::body::{Anthro, Part};
+use super::body::Part;
 use super::math::{cross, madd, norm, normalize, orthogonal, sub};
 use super::poses::{PersonModel, Slot};
 use super::raycast::Shape;
@@ -43,7 +43,7 @@ pub fn slim_hands(m: &mut PersonModel) {
                 }
             }
             (Part::Hand(i), _) => {
-                out.push((flat_hand(&m.anthro, sk.keypoints[5 + i], sk.hand_tips[i], sk.lateral, s), part, slot))
+                out.push((flat_hand(sk.keypoints[5 + i], sk.hand_tips[i], sk.lateral, s), part, slot))
             }
             _ => out.push((shape, part, slot)),
         }
@@ -57,10 +57,11 @@ fn at(a: [f64; 3], b: [f64; 3], t: f64) -> [f64; 3] {
 }
 
 /// An ellipsoid from the wrist to the finger tips, broad across the palm and thin through it. The
-/// palm faces the body's side, as a hanging hand's does.
-fn flat_hand(a: &Anthro, wrist: [f64; 3], tip: [f64; 3], lateral: [f64; 3], s: f64) -> Shape {
+/// palm faces the body's side, as a hanging hand's does. The tip is a hand's length from the wrist
+/// (`Skeleton::new`).
+fn flat_hand(wrist: [f64; 3], tip: [f64; 3], lateral: [f64; 3], s: f64) -> Shape {
     let along = sub(tip, wrist);
-    let len = norm(along).max(0.5 * a.hand);
+    let len = norm(along);
     let d = normalize(along);
     let normal = orthogonal(lateral, d, [1.0, 0.0, 0.0]);
     let breadth = normalize(cross(normal, d));
@@ -71,13 +72,18 @@ fn flat_hand(a: &Anthro, wrist: [f64; 3], tip: [f64; 3], lateral: [f64; 3], s: f
 #[cfg(test)]
 mod tests {
     use super::*;
+    use crate::sim::body::Anthro;
     use crate::sim::math::{dot, scale};
     use crate::sim::poses::{pose_person, Activity};
     use rand::SeedableRng;
 
-    fn person(activity: Activity) -> PersonModel {
+    fn person_of(height: f64, activity: Activity) -> PersonModel {
         let mut rng = rand::rngs::StdRng::seed_from_u64(7);
-        pose_person(&mut rng, Anthro::new(1.7, 1.0, |_| 1.0), activity)
+        pose_person(&mut rng, Anthro::new(height, 1.0, |_| 1.0), activity)
+    }
+
+    fn person(activity: Activity) -> PersonModel {
+        person_of(1.7, activity)
     }
 
     /// Distance through `shape` along the line `p + t·u`.
@@ -91,10 +97,17 @@ mod tests {
 
     #[test]
     fn forearms_taper_to_the_wrist_and_hands_are_flat() {
-        let before = person(Activity::Standing);
-        let mut after = before.clone();
-        slim_hands(&mut after);
-        assert_eq!(after.skeleton.keypoints, before.skeleton.keypoints);
+        for height in [1.7, 1.19] {
+            let before = person_of(height, Activity::Standing);
+            let mut after = before.clone();
+            slim_hands(&mut after);
+            assert_eq!(after.skeleton.keypoints, before.skeleton.keypoints);
+            sizes_at(&after, height / 1.7);
+        }
+    }
+
+    /// The forearms' and hands' sizes of a 1.70 m person scaled by `s`.
+    fn sizes_at(after: &PersonModel, s: f64) {
         let kp = &after.skeleton.keypoints;
         for i in 0..2 {
             let forearms: Vec<&Shape> =
@@ -107,14 +120,17 @@ mod tests {
                 let p = at(elbow, wrist, t);
                 forearms.iter().map(|s| chord(s, p, across)).fold(0.0, f64::max)
             };
-            assert!((width(0.2) - 2.0 * 1.1 * 0.036).abs() < 1e-3, "below the elbow: {}", width(0.2));
-            assert!((width(0.9) - 2.0 * WRIST_RADIUS_M).abs() < 1e-3, "at the wrist: {}", width(0.9));
+            assert!((width(0.2) - 2.0 * 1.1 * 0.036 * s).abs() < 1e-3, "below the elbow: {}", width(0.2));
+            assert!((width(0.9) - 2.0 * WRIST_RADIUS_M * s).abs() < 1e-3, "at the wrist: {}", width(0.9));
             let (hand, _, _) = after.parts.iter().find(|(_, p, _)| *p == Part::Hand(i)).unwrap();
             let mid = at(wrist, after.skeleton.hand_tips[i], 0.5);
             let palm = orthogonal(after.skeleton.lateral, normalize(sub(after.skeleton.hand_tips[i], wrist)), [1.0; 3]);
-            assert!((chord(hand, mid, palm) - 2.0 * HAND_HALF_THICKNESS_M).abs() < 1e-3);
-            let across_palm = normalize(cross(palm, normalize(sub(after.skeleton.hand_tips[i], wrist))));
-            assert!((chord(hand, mid, across_palm) - 2.0 * HAND_HALF_BREADTH_M).abs() < 1e-3);
+            assert!((chord(hand, mid, palm) - 2.0 * HAND_HALF_THICKNESS_M * s).abs() < 1e-3);
+            let along = normalize(sub(after.skeleton.hand_tips[i], wrist));
+            let across_palm = normalize(cross(palm, along));
+            assert!((chord(hand, mid, across_palm) - 2.0 * HAND_HALF_BREADTH_M * s).abs() < 1e-3);
+            // from the wrist to the finger tips
+            assert!((chord(hand, mid, along) - after.anthro.hand).abs() < 1e-3);
             assert!(dot(palm, across_palm).abs() < 1e-9 && norm(palm) > 0.99);
         }
     }
