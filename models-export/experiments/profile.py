@@ -2,6 +2,7 @@
 and in 2D (the 3D keypoints projected into the image), against the paper's Table 2.
 
     python -m experiments.profile ../runs/hard ../runs/hard_slim [--row lidar_reg_seg_depth]
+    python -m experiments.profile ../runs/hard --test ../data/other_test   # the row scored on another set
 
 The paper's two columns are measured on different sets (docs/DATA.md, "Realism against Waymo's
 anchors"): OKS@3D on 986 Waymo pedestrians labelled in 3D, with nets trained on the authors'
@@ -16,6 +17,9 @@ import sys
 from pathlib import Path
 
 from experiments.report import PAPER_T2, md_table, part_oks
+from experiments.runs import run_predictions
+from posefuse_train import data as data_mod
+from posefuse_train import evaluate
 
 # Table 2, per-keypoint OKS@2D % on the internal test set: camera, LiDAR, multi-modal.
 PAPER_T2_2D = {
@@ -80,8 +84,20 @@ def main(argv=None):
     p = argparse.ArgumentParser(prog="python -m experiments.profile", description=__doc__.split("\n")[0])
     p.add_argument("runs", type=Path, nargs="+", help="ablation run directories (results.json)")
     p.add_argument("--row", default="lidar_reg_seg_depth", help="the row whose profile to show")
+    p.add_argument(
+        "--test",
+        type=Path,
+        help="score the row's checkpoint on this held-out set instead of reading results.json",
+    )
     a = p.parse_args(argv)
     runs = {}
+    if a.test:
+        test, cfg, _ = data_mod.load(a.test)
+        for run in a.runs:
+            pred = run_predictions(run, [a.row], test, cfg)[a.row]
+            runs[f"{run.name} on {a.test.name}"] = evaluate.evaluate(pred, test, cfg)
+        sys.stdout.write(render(runs) + "\n")
+        return
     for run in a.runs:
         rows = json.loads((run / "results.json").read_text())["rows"]
         if a.row not in rows:

@@ -51,3 +51,18 @@ def test_render_has_a_line_per_run_and_dimension_then_the_papers(tmp_path, capsy
     assert lines[5].startswith("| paper, LiDAR-only | 2D | 77.53 | 64.1 | 90.3 | 0.71 | 0.87 |")
     with pytest.raises(SystemExit, match="no row fusion_reg"):
         profile.main([str(run), "--row", "fusion_reg"])
+
+
+def test_a_run_is_scored_on_another_set_with_its_own_row(synthetic_sets, tmp_path, monkeypatch, capsys):
+    test_dir = synthetic_sets[1]
+    asked = []
+
+    def truth(run, rows, test, cfg):
+        asked.append((run, rows, len(test["kp3d"])))
+        return {rows[0]: test["kp3d"]}
+
+    monkeypatch.setattr(profile, "run_predictions", truth)
+    profile.main([str(tmp_path / "abl"), "--test", str(test_dir), "--row", "lidar_reg"])
+    lines = capsys.readouterr().out.strip().splitlines()
+    assert asked == [(tmp_path / "abl", ["lidar_reg"], len(profile.data_mod.load(test_dir)[0]["kp3d"]))]
+    assert lines[2] == f"| abl on {test_dir.name} | 3D | 100.00 | 100.0 | 100.0 | 1.00 | 1.00 | 1.00 | 1.00 |"
