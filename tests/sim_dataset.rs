@@ -92,21 +92,27 @@ fn the_street_profile_is_recorded_reproducible_and_different() {
     assert_ne!(fa["shards/shard-00000.npz"], clean["shards/shard-00000.npz"]);
 }
 
-#[test]
-fn label_noise_moves_the_3d_labels_and_nothing_else() {
+/// `street` of one seed without and with `effect`; the second set records it as `name`.
+fn street_without_and_with(count: usize, effect: Effect, name: &str) -> (tempfile::TempDir, tempfile::TempDir) {
     let with = |dir: &Path, effects: Vec<Effect>| SimulateOptions {
         profile: Profile::Street,
-        count: 60,
+        count,
         preview: false,
         effects,
         ..args(dir)
     };
     let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
     simulate(with(a.path(), vec![])).unwrap();
-    simulate(with(b.path(), vec![Effect::LabelNoise])).unwrap();
+    simulate(with(b.path(), vec![effect])).unwrap();
     let doc: serde_json::Value =
         serde_json::from_slice(&std::fs::read(b.path().join("dataset.json")).unwrap()).unwrap();
-    assert_eq!(doc["effects"], serde_json::json!(["dress", "mixed-pixels", "label-noise"]));
+    assert_eq!(doc["effects"], serde_json::json!(["dress", "mixed-pixels", name]));
+    (a, b)
+}
+
+#[test]
+fn label_noise_moves_the_3d_labels_and_nothing_else() {
+    let (a, b) = street_without_and_with(60, Effect::LabelNoise, "label-noise");
     let (mut sa, mut sb) = (open_shard(a.path()), open_shard(b.path()));
     for k in ["image", "kp3d_visible", "kp3d_occluded", "kp2d_visible"] {
         assert_eq!(sa.u8(k), sb.u8(k), "{k}");
@@ -138,19 +144,7 @@ fn points_near(sh: &mut Shard, ks: &[usize], r: f32) -> usize {
 
 #[test]
 fn slim_hands_thins_the_wrists_and_keeps_the_persons() {
-    let with = |dir: &Path, effects: Vec<Effect>| SimulateOptions {
-        profile: Profile::Street,
-        count: 120,
-        preview: false,
-        effects,
-        ..args(dir)
-    };
-    let (a, b) = (tempfile::tempdir().unwrap(), tempfile::tempdir().unwrap());
-    simulate(with(a.path(), vec![])).unwrap();
-    simulate(with(b.path(), vec![Effect::SlimHands])).unwrap();
-    let doc: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(b.path().join("dataset.json")).unwrap()).unwrap();
-    assert_eq!(doc["effects"], serde_json::json!(["dress", "mixed-pixels", "slim-hands"]));
+    let (a, b) = street_without_and_with(120, Effect::SlimHands, "slim-hands");
     let (mut sa, mut sb) = (open_shard(a.path()), open_shard(b.path()));
     // The boxes are fitted to the body's shapes, so only the keypoints stay to the bit.
     assert_eq!(sa.f32("kp3d_vehicle"), sb.f32("kp3d_vehicle"), "the same persons in the same poses");

@@ -16,21 +16,11 @@ import json
 import sys
 from pathlib import Path
 
-from experiments.report import PAPER_T2, md_table, part_oks
+from experiments.report import PAPER_T2, PAPER_T2_2D, PAPER_T3, md_table, part_oks
 from experiments.runs import run_predictions
 from posefuse_train import data as data_mod
 from posefuse_train import evaluate
 
-# Table 2, per-keypoint OKS@2D % on the internal test set: camera, LiDAR, multi-modal.
-PAPER_T2_2D = {
-    "nose": (75.10, 56.27, 72.17),
-    "shoulder": (83.38, 85.68, 87.89),
-    "elbow": (82.63, 78.72, 84.82),
-    "wrist": (79.03, 64.10, 79.17),
-    "hip": (87.97, 90.33, 92.37),
-    "knee": (85.91, 86.82, 90.05),
-    "ankle": (84.17, 85.63, 88.72),
-}
 PROFILE_PARTS = ("wrist", "elbow", "knee", "ankle")
 KEYS = {"3D": "per_keypoint_oks_3d", "2D": "per_keypoint_oks_2d"}
 
@@ -66,7 +56,7 @@ def render(runs: dict[str, dict]) -> str:
                 + [fmt(r) for r in ratios(prof)]
             )
         paper = paper_profile(dim)
-        overall = 59.58 if dim == "3D" else 77.53
+        overall = PAPER_T3["lidar_reg_seg"][0 if dim == "3D" else 2]
         body.append(
             [
                 "paper, LiDAR-only",
