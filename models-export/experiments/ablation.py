@@ -28,7 +28,7 @@ import torch
 
 from posefuse_train import __version__, evaluate, labels
 from posefuse_train import data as data_mod
-from posefuse_train.camera_net import check_heatmap_size, deconv_layers_for, predicted_heatmap_size
+from posefuse_train.camera_net import as_served, check_heatmap_size, deconv_layers_for, predicted_heatmap_size
 from posefuse_train.config import CameraNetConfig, PointNetConfig
 from posefuse_train.export import camera_from_checkpoint, export_bundle, export_onnx, measure_latency
 from posefuse_train.fusion import smoothed
@@ -117,6 +117,12 @@ def main(argv=None):
         help="> 0: train the camera net with a facing target of this weight (docs/TRAINING.md)",
     )
     p.add_argument("--camera-checkpoint", help="reuse a trained camera net instead of training one")
+    p.add_argument(
+        "--flip-test",
+        action="store_true",
+        help="the camera net answers with the mean of the crop's and its mirror's heatmaps "
+        "(docs/TRAINING.md, 'Flip test'): the point nets train on those, the report and the bundle use them",
+    )
     p.add_argument(
         "--point-epochs",
         type=float,
@@ -220,7 +226,11 @@ def main(argv=None):
     # camera network
     t = time.time()
     cam_cfg = TrainCameraConfig(
-        epochs=a.camera_epochs, lr=a.camera_lr, time_budget_s=cam_budget, facing_weight=a.camera_facing_weight
+        epochs=a.camera_epochs,
+        lr=a.camera_lr,
+        time_budget_s=cam_budget,
+        facing_weight=a.camera_facing_weight,
+        flip_test=a.flip_test,
     )
     if a.camera_checkpoint:
         cam_ckpt = torch.load(a.camera_checkpoint, map_location="cpu", weights_only=False)
@@ -232,6 +242,7 @@ def main(argv=None):
         cam_cfg = TrainCameraConfig(
             **{k: tuple(v) if isinstance(v, list) else v for k, v in cam_ckpt["train_config"].items()}
         )
+        cam_cfg = dataclasses.replace(cam_cfg, flip_test=a.flip_test)
         log(f"camera: reusing {a.camera_checkpoint}")
         # the run directory stays self-contained for by_range / heading_error
         if Path(a.camera_checkpoint).resolve() != (out / "camera.pt").resolve():
@@ -247,6 +258,7 @@ def main(argv=None):
         camera = train_camera(train, cfg, net_cfg, cam_cfg, a.device, log=log)
         torch.save(checkpoint(camera, cfg, cam_cfg, str(a.train)), out / "camera.pt")
     timings["camera_train_s"] = time.time() - t
+    plain_camera, camera = camera, as_served(camera, a.flip_test)
     t = time.time()
     raw_train = predict_heatmaps(camera, train["image"], cfg, a.device)
     raw_test = predict_heatmaps(camera, test["image"], cfg, a.device)
@@ -274,9 +286,14 @@ def main(argv=None):
             "train_s": timings["camera_train_s"],
             "ort_latency_ms_b1": cam_latency,
             "params": sum(p.numel() for p in camera.parameters()),
-            "epochs": getattr(camera, "trained_epochs", 0.0),
+            "epochs": getattr(plain_camera, "trained_epochs", 0.0),
         }
     }
+    if a.flip_test:
+        raw_plain = predict_heatmaps(plain_camera, test["image"], cfg, a.device)
+        results["camera"]["metrics_without_flip_test"] = evaluate.evaluate(
+            evaluate.camera_only(raw_plain, test, cfg), test, cfg
+        )
     m = results["camera"]["metrics"]
     log(
         f"camera-only: OKS@3D {m['oks_acc_3d']:.4f} MPJPE {m['mpjpe_3d_m']:.4f} "
@@ -316,9 +333,7 @@ def main(argv=None):
         if first:
             epochs, steps = net.trained_epochs, len(net.loss_history)
         train_s = time.time() - t
-        pred = predict_points(
-            net, test["serve_xyz"], test["serve_uv"], sm_test if fusion else None, cfg
-        )
+        pred = predict_points(net, test["serve_xyz"], test["serve_uv"], sm_test if fusion else None, cfg)
         pred = evaluate.with_fallback(pred, cam_pred, test, cfg)
         metrics = evaluate.evaluate(pred, test, cfg)
         results[name] = {

@@ -12,7 +12,7 @@ import torch
 from torch import nn
 
 from .config import CameraNetConfig
-from .keypoints import K
+from .keypoints import FLIP, K
 
 
 class BasicBlock(nn.Module):
@@ -181,3 +181,36 @@ class CameraNet(nn.Module):
         features = self.backbone(image)
         heatmaps = torch.sigmoid(self.shuffle(self.final(self.deconv(features))))
         return heatmaps, self.facing(features.mean(dim=(2, 3))).squeeze(1)
+
+
+def as_served(net: CameraNet, flip_test: bool) -> CameraNet | FlipTest:
+    """The net as the bundle will run it."""
+    return FlipTest(net) if flip_test else net
+
+
+class FlipTest(nn.Module):
+    """A camera net asked twice, about the crop and about its mirror image, inside one graph: the
+    mirror's heatmaps are flipped back, their left and right channels exchanged, and the two
+    averaged (SimpleBaseline's flip test). The server runs it as any camera net; it costs a second
+    pass of the backbone. docs/TRAINING.md, "Flip test".
+
+    Heatmap cell j stands for model pixel j·S/W and mirroring maps pixel u to S − u, so the
+    mirror's cell W − j lands on cell j: flipped back, the mirror's heatmaps move one cell right.
+    Column 0 has no counterpart and keeps the plain pass's value."""
+
+    def __init__(self, net: CameraNet):
+        super().__init__()
+        self.net = net
+        self.register_buffer("swap", torch.tensor(FLIP), persistent=False)
+
+    @property
+    def cfg(self) -> CameraNetConfig:
+        return self.net.cfg
+
+    def forward(self, image: torch.Tensor) -> torch.Tensor:
+        b = image.shape[0]
+        both = self.net(torch.cat([image, image.flip(3)], dim=0))
+        plain, mirrored = both[:b], both[b:]
+        back = mirrored.flip(3).index_select(1, self.swap)
+        back = torch.cat([plain[..., :1], back[..., :-1]], dim=3)
+        return 0.5 * (plain + back)

@@ -27,7 +27,7 @@ import onnxruntime as ort
 import torch
 
 from . import __version__
-from .camera_net import CameraNet, check_heatmap_size, deconv_layers_for
+from .camera_net import CameraNet, FlipTest, as_served, check_heatmap_size, deconv_layers_for
 from .config import CameraNetConfig, PipelineConfig, PointNetConfig
 from .facing_net import FacingPointNet
 from .keypoints import NAMES, WAYMO_TYPES, K
@@ -93,7 +93,7 @@ def check_parity(model: torch.nn.Module, path: Path, make_input, tol: float) -> 
 
 def export_bundle(
     out_dir: str | os.PathLike,
-    camera: CameraNet,
+    camera: CameraNet | FlipTest,
     fusion: PointNet | FacingPointNet,
     lidar: PointNet | FacingPointNet,
     pipeline: PipelineConfig,
@@ -127,6 +127,7 @@ def export_bundle(
 
         return make
 
+    flip_test = {"flip_test": True} if isinstance(camera, FlipTest) else {}
     specs = {
         "camera": dict(
             file="camera.onnx",
@@ -135,7 +136,7 @@ def export_bundle(
             input="image",
             inputs={"image": [-1, 3, s, s]},
             outputs={"heatmaps": [-1, K, h, h]},
-            extra={"backbone": camera.cfg.backbone},
+            extra={"backbone": camera.cfg.backbone, **flip_test},
         ),
         "point_fusion": dict(
             file="point_fusion.onnx",
@@ -245,14 +246,18 @@ def main(argv=None):
     p.add_argument(
         "--facing-passes", type=int, default=1, help="refinement passes inside the graph (with --facing-*)"
     )
-    p.add_argument(
-        "--facing-turns", type=int, default=1, help="turns of the input the facing nets answer at"
-    )
+    p.add_argument("--facing-turns", type=int, default=1, help="turns of the input the facing nets answer at")
     p.add_argument(
         "--facing-agree-deg",
         type=float,
         default=0.0,
         help="keep the box frame where the facing net agrees with it within this many degrees (0: never)",
+    )
+    p.add_argument(
+        "--flip-test",
+        action="store_true",
+        help="export the camera net with its mirror pass inside the graph (docs/TRAINING.md, 'Flip test'); "
+        "a camera checkpoint trained with flip_test gets it without the flag",
     )
     p.add_argument("--metrics", help="JSON file with held-out metrics {fusion, lidar, camera}")
     p.add_argument("--name", default="default")
@@ -274,6 +279,7 @@ def main(argv=None):
         cam_ckpt, fus_ckpt, lid_ckpt = (load_checkpoint(x) for x in (a.camera, a.fusion, a.lidar))
         pipeline = PipelineConfig.from_dict(cam_ckpt["pipeline"])
         camera = camera_from_checkpoint(cam_ckpt)
+        camera = as_served(camera, a.flip_test or cam_ckpt["train_config"].get("flip_test", False))
         fusion, lidar = point_from_checkpoint(fus_ckpt), point_from_checkpoint(lid_ckpt)
         training = {
             "data": cam_ckpt.get("data"),

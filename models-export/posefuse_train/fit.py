@@ -34,7 +34,7 @@ import torch
 
 from . import __version__, bundle_eval, distributed
 from . import recipe as recipes
-from .camera_net import CameraNet
+from .camera_net import CameraNet, FlipTest, as_served
 from .export import camera_from_checkpoint, export_bundle, load_checkpoint, point_from_checkpoint
 from .facing_net import FacingPointNet
 from .metrics import CONVENTION
@@ -251,7 +251,8 @@ def fit(a: FitArgs) -> dict | None:
             _finish(log, d, camera, pipeline, cam_cfg, a.train, done("camera"), "camera", timings)
         # every process reads the saved net: under DDP each kept its own BatchNorm running
         # statistics, and the fusion features must be the exported camera's
-        camera = camera_from_checkpoint(load_checkpoint(done("camera"))).to(device).eval()
+        camera = as_served(camera_from_checkpoint(load_checkpoint(done("camera"))), cam_cfg.flip_test)
+        camera = camera.to(device).eval()
 
         # point nets behind it: one set of pseudo labels for both
         labels = None
@@ -280,7 +281,8 @@ def fit(a: FitArgs) -> dict | None:
         d.barrier()
         return None
     # the bundle is exported from the saved stage networks: plain modules, the weights on disk
-    camera = camera_from_checkpoint(load_checkpoint(done("camera")))
+    cam_ckpt = load_checkpoint(done("camera"))
+    camera = as_served(camera_from_checkpoint(cam_ckpt), cam_ckpt["train_config"].get("flip_test", False))
     nets = {s: point_from_checkpoint(load_checkpoint(done(s))) for s in ("fusion", "lidar")}
     facing = None
     if a.facing_from:
@@ -306,7 +308,9 @@ def _finish(log, d, net, pipeline, cfg, train_path, path: Path, stage: str, timi
     d.barrier()
 
 
-def _export(a, recipe, work, camera: CameraNet, nets, pipeline, train, test, device, d, log, facing) -> dict:
+def _export(
+    a, recipe, work, camera: CameraNet | FlipTest, nets, pipeline, train, test, device, d, log, facing
+) -> dict:
     staged = work / "bundle"
     if staged.exists():
         shutil.rmtree(staged)

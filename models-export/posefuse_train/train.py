@@ -253,6 +253,9 @@ class TrainCameraConfig:
     sigma_cells: float = 1.0  # target Gaussian sigma in heatmap cells (2 at 64x64 in the paper)
     # > 0 (with a net that has a facing head): weight of the facing target's loss
     facing_weight: float = 0.0
+    # True: the trained net is asked about each crop and its mirror (camera_net.FlipTest) wherever
+    # it answers: heatmaps for the point nets, evaluation, the bundle. Training itself is the same.
+    flip_test: bool = False
     steps: int = 0  # > 0: exactly this many steps (overrides epochs)
     time_budget_s: float = 0.0  # opt-in: > 0 stops (with the schedule compressed) when this runs out
     seed: int = 0
@@ -547,7 +550,7 @@ def point_batch(xyz, uv, smoothed, pipeline: PipelineConfig):
     return torch.cat([xyz, sample_features(smoothed, uv, pipeline.image_size, pipeline.sampling)], dim=2)
 
 
-def shard_heatmaps(camera: CameraNet, pipeline: PipelineConfig, device: str):
+def shard_heatmaps(camera: torch.nn.Module, pipeline: PipelineConfig, device: str):
     """A ShardLoader transform: a shard's images -> the camera net's smoothed heatmaps (what the
     fusion net samples), computed once per shard load; the images are dropped."""
 
@@ -595,7 +598,7 @@ def train_point(
     keys = ["points_xyz", "points_uv", "points_count", "kp2d"]
     transform = None
     sm_all = None
-    if isinstance(smoothed, CameraNet):
+    if isinstance(smoothed, torch.nn.Module):  # a CameraNet, or one under FlipTest
         keys.append("image")
         transform = shard_heatmaps(smoothed.to(device).eval(), pipeline, device)
     elif smoothed is not None:

@@ -71,6 +71,14 @@ def test_ablation_runs_end_to_end_and_writes_report_and_bundle(synthetic_sets, t
     again = json.loads((tmp_path / "again" / "manifest.json").read_text())
     assert again["training"]["trained"] is True and again["metrics"]["held_out"] == held_out
     assert again["preprocessing"] == manifest["preprocessing"]
+    assert "flip_test" not in again["models"]["camera"]
+    export_main(
+        ["--camera", str(out / "camera.pt"), "--fusion", str(out / "fusion_reg_seg.pt")]
+        + ["--lidar", str(out / "lidar_reg_seg.pt"), "--flip-test", "--out", str(tmp_path / "flip")]
+    )
+    assert (
+        json.loads((tmp_path / "flip" / "manifest.json").read_text())["models"]["camera"]["flip_test"] is True
+    )
 
     # per-range breakdown of the saved checkpoints, and RESULTS.md re-rendered with it and notes
     from experiments.by_range import main as by_range_main
@@ -113,11 +121,18 @@ def test_ablation_runs_end_to_end_and_writes_report_and_bundle(synthetic_sets, t
     main(
         ["--train", str(train), "--test", str(test), "--out", str(out2)]
         + ["--camera-checkpoint", str(out / "camera.pt"), "--rows", "lidar_reg", "--rotate-deg", "180"]
-        + ["--point-epochs", "1"]
+        + ["--point-epochs", "1", "--flip-test"]
     )
     assert (out2 / "camera.pt").read_bytes() == (out / "camera.pt").read_bytes()
     assert list(cwd.iterdir()) == []
     recipe = json.loads((out2 / "results.json").read_text())
+    # the flip test is the camera's answer there; the same net without it answers as in the first run
+    flipped = recipe["rows"]["camera"]
+    assert (
+        flipped["config"]["flip_test"] is True and summary["rows"]["camera"]["config"]["flip_test"] is False
+    )
+    assert flipped["metrics_without_flip_test"] == summary["rows"]["camera"]["metrics"]
+    assert flipped["metrics"] != flipped["metrics_without_flip_test"]
     assert recipe["rows"]["lidar_reg"]["config"]["rotate_deg"] == 180.0
     from experiments.heading_error import main as heading_main
 

@@ -1,10 +1,17 @@
 import pytest
 import torch
+import torch.nn.functional as F
 from torch import nn
 
-from posefuse_train.camera_net import CameraNet, check_heatmap_size, deconv_layers_for, predicted_heatmap_size
+from posefuse_train.camera_net import (
+    CameraNet,
+    FlipTest,
+    check_heatmap_size,
+    deconv_layers_for,
+    predicted_heatmap_size,
+)
 from posefuse_train.config import CameraNetConfig
-from posefuse_train.keypoints import K
+from posefuse_train.keypoints import FLIP, K
 
 
 @pytest.mark.parametrize("upsample", ["deconv", "shuffle"])
@@ -62,3 +69,43 @@ def test_training_refuses_heatmaps_the_net_cannot_predict():
     cfg.heatmap_size = 32
     with pytest.raises(ValueError, match="final_shuffle 1"):
         train_camera(None, cfg, CameraNetConfig(), TrainCameraConfig())
+
+
+class MirrorExact(nn.Module):
+    """Heatmap cell j is the mean of the pixels around j·S/W (the decode's convention), channel k
+    weighted 1 + k: its answer to a mirrored crop is exactly its answer mirrored, but left and right
+    channels differ."""
+
+    stride = 4
+
+    def forward(self, x):
+        s = self.stride
+        cells = F.avg_pool2d(F.pad(x[:, :1], (s // 2, 0, s // 2, 0)), s)
+        return cells * torch.arange(1, K + 1, dtype=x.dtype).view(1, K, 1, 1)
+
+
+def test_the_flip_test_puts_the_mirror_answer_back_on_the_cells_it_came_from():
+    torch.manual_seed(0)
+    x = torch.rand(3, 3, 32, 32)
+    net = MirrorExact()
+    plain = net(x)
+    got = FlipTest(net)(x)
+    # off column 0, each channel is the mean of its own and its mirror partner's weight
+    w = (torch.arange(1, K + 1) + torch.tensor(FLIP) + 1).float().view(1, K, 1, 1) / 2
+    torch.testing.assert_close(got[..., 1:], (plain / torch.arange(1, K + 1).view(1, K, 1, 1) * w)[..., 1:])
+    torch.testing.assert_close(got[..., :1], plain[..., :1])
+
+
+def test_the_flip_test_answers_each_crop_alone_at_the_nets_grid():
+    torch.manual_seed(0)
+    net = CameraNet(CameraNetConfig(deconv_channels=16)).eval()
+    x = torch.randn(4, 3, 64, 64)
+    with torch.no_grad():
+        for p in net.parameters():  # an untrained head answers a constant
+            p.add_(0.1 * torch.randn_like(p))
+        batch, one = FlipTest(net)(x), FlipTest(net)(x[2:3])
+        plain = net(x)
+    assert batch.shape == plain.shape == (4, K, 16, 16)
+    torch.testing.assert_close(batch[2:3], one)
+    assert not torch.allclose(batch, plain)
+    assert FlipTest(net).cfg is net.cfg

@@ -8,9 +8,10 @@ import pytest
 import torch
 
 import posefuse_train
+from posefuse_train.camera_net import FlipTest
 from posefuse_train.config import CameraNetConfig, PipelineConfig, PointNetConfig
 from posefuse_train.export import ParityError, check_parity, export_bundle, export_onnx, untrained_models
-from posefuse_train.keypoints import NAMES, WAYMO_TYPES, K
+from posefuse_train.keypoints import FLIP, NAMES, WAYMO_TYPES, K
 from posefuse_train.point_net import PointNet
 
 PREPROCESSING_KEYS = {
@@ -144,3 +145,30 @@ def test_a_pipeline_whose_heatmaps_the_camera_does_not_predict_is_refused(tmp_pa
     with pytest.raises(ValueError, match="deconv_layers to 4"):
         export_bundle(tmp_path / "b", *small_models(cfg), cfg, trained=False)
     assert not (tmp_path / "b").exists()
+
+
+def test_a_flip_test_camera_exports_its_mirror_pass_inside_the_graph(tmp_path):
+    cfg = PipelineConfig.with_image_size(32)
+    cfg.num_points = 64
+    cam, fusion, lidar = small_models(cfg)
+    with torch.no_grad():  # an untrained head answers a constant; give the net something to say
+        for p in cam.parameters():
+            p.add_(0.1 * torch.randn_like(p))
+    plain = export_bundle(tmp_path / "plain", cam, fusion, lidar, cfg, trained=False)
+    flip = export_bundle(tmp_path / "flip", FlipTest(cam), fusion, lidar, cfg, trained=False)
+    assert "flip_test" not in plain["models"]["camera"] and flip["models"]["camera"]["flip_test"] is True
+    assert flip["models"]["camera"]["inputs"] == plain["models"]["camera"]["inputs"]
+    assert flip["training"]["config"]["onnx_parity_max_abs_diff"]["camera"] <= 1e-4
+
+    def run(bundle, x):
+        sess = ort.InferenceSession(
+            str(tmp_path / bundle / "camera.onnx"), providers=["CPUExecutionProvider"]
+        )
+        return sess.run(None, {"image": x})[0]
+
+    x = np.random.default_rng(0).standard_normal((5, 3, 32, 32)).astype(np.float32)
+    a, m = run("plain", x), run("plain", x[..., ::-1].copy())
+    back = m[:, FLIP, :, ::-1]
+    want = a.copy()
+    want[..., 1:] = 0.5 * (a[..., 1:] + back[..., :-1])
+    np.testing.assert_allclose(run("flip", x), want, atol=1e-5)

@@ -176,12 +176,13 @@ def test_the_cpu_recipe_is_the_default_bundles_recipe():
 
 
 def test_a_recipe_with_a_finer_heatmap_grid_trains_and_exports_it(synthetic_sets, tmp_path):
-    """docs/TRAINING.md, "Heatmap resolution": S/2 heatmaps from a pixel-shuffled last conv,
-    sampled bilinearly, from the recipe to the bundle's networks and manifest."""
+    """docs/TRAINING.md, "Heatmap resolution" and "Flip test": S/2 heatmaps from a pixel-shuffled
+    last conv, sampled bilinearly, asked about the mirror too, from the recipe to the bundle."""
     text = (MODELS_EXPORT / "posefuse_train/recipes/cpu.toml").read_text()
     fine = 'smoothing_sigma = 1.5\nheatmap_size = 16\nsampling = "bilinear"'
     text = text.replace("smoothing_sigma = 3.0", fine)
     text = text.replace("deconv_layers = 3", "deconv_layers = 3\nfinal_shuffle = 2")
+    text = text.replace("seed = 0", "flip_test = true\nseed = 0", 1)
     (tmp_path / "fine.toml").write_text(text)
     out = tmp_path / "b"
     manifest = fit(args(synthetic_sets, out, recipe=str(tmp_path / "fine.toml")))
@@ -189,6 +190,9 @@ def test_a_recipe_with_a_finer_heatmap_grid_trains_and_exports_it(synthetic_sets
     assert (pre["image_size"], pre["heatmap_size"], pre["sampling"]) == (32, 16, "bilinear")
     assert manifest["models"]["camera"]["outputs"]["heatmaps"] == [-1, K, 16, 16]
     assert manifest["training"]["config"]["camera"]["final_shuffle"] == 2
+    # the mirror pass is in the exported graph and in the heatmaps the fusion net trained on
+    assert manifest["models"]["camera"]["flip_test"] is True
+    assert manifest["training"]["config"]["camera"]["flip_test"] is True
     assert manifest["metrics"]["held_out"]["fusion"]["count_3d"] > 0
 
 
