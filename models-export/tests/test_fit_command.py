@@ -194,6 +194,14 @@ def test_a_recipe_with_a_finer_heatmap_grid_trains_and_exports_it(synthetic_sets
     assert manifest["models"]["camera"]["flip_test"] is True
     assert manifest["training"]["config"]["camera"]["flip_test"] is True
     assert manifest["metrics"]["held_out"]["fusion"]["count_3d"] > 0
+    # without it the camera net trains the same, and the fusion net behind it does not
+    (tmp_path / "once.toml").write_text(text.replace("flip_test = true\n", ""))
+    once = fit(args(synthetic_sets, tmp_path / "once", recipe=str(tmp_path / "once.toml")))
+    assert "flip_test" not in once["models"]["camera"]
+    flip, plain = stage_weights(tmp_path / "b.work"), stage_weights(tmp_path / "once.work")
+    assert equal({"camera": flip["camera"]}, {"camera": plain["camera"]})
+    assert not equal({"fusion": flip["fusion"]}, {"fusion": plain["fusion"]})
+    assert equal({"lidar": flip["lidar"]}, {"lidar": plain["lidar"]})
 
 
 def test_a_recipe_for_another_crop_size_is_refused(synthetic_sets, tmp_path):
