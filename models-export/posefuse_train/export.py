@@ -279,7 +279,9 @@ def main(argv=None):
         cam_ckpt, fus_ckpt, lid_ckpt = (load_checkpoint(x) for x in (a.camera, a.fusion, a.lidar))
         pipeline = PipelineConfig.from_dict(cam_ckpt["pipeline"])
         camera = camera_from_checkpoint(cam_ckpt)
-        camera = as_served(camera, a.flip_test or cam_ckpt["train_config"].get("flip_test", False))
+        # Checkpoints from before the trainer recorded its config have none.
+        trained_with_flip = (cam_ckpt.get("train_config") or {}).get("flip_test", False)
+        camera = as_served(camera, a.flip_test or trained_with_flip)
         fusion, lidar = point_from_checkpoint(fus_ckpt), point_from_checkpoint(lid_ckpt)
         training = {
             "data": cam_ckpt.get("data"),

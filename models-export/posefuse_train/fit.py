@@ -282,7 +282,7 @@ def fit(a: FitArgs) -> dict | None:
         return None
     # the bundle is exported from the saved stage networks: plain modules, the weights on disk
     cam_ckpt = load_checkpoint(done("camera"))
-    camera = as_served(camera_from_checkpoint(cam_ckpt), cam_ckpt["train_config"].get("flip_test", False))
+    camera = as_served(camera_from_checkpoint(cam_ckpt), cam_cfg.flip_test)
     nets = {s: point_from_checkpoint(load_checkpoint(done(s))) for s in ("fusion", "lidar")}
     facing = None
     if a.facing_from:

@@ -172,3 +172,34 @@ def test_a_flip_test_camera_exports_its_mirror_pass_inside_the_graph(tmp_path):
     want = a.copy()
     want[..., 1:] = 0.5 * (a[..., 1:] + back[..., :-1])
     np.testing.assert_allclose(run("flip", x), want, atol=1e-5)
+
+
+@pytest.mark.parametrize(
+    ("train_config", "flag", "want"),
+    [
+        (None, [], False),  # a checkpoint from before the trainer recorded its config
+        (None, ["--flip-test"], True),
+        ({"flip_test": True}, [], True),
+        ({"flip_test": False}, [], False),
+    ],
+)
+def test_the_cli_exports_the_flip_test_from_the_flag_or_the_checkpoint(tmp_path, train_config, flag, want):
+    from posefuse_train.export import main
+
+    cfg = PipelineConfig.with_image_size(32)
+    cfg.num_points = 64
+    cam, fusion, lidar = small_models(cfg)
+    camera = {"config": cam.cfg.__dict__, "state_dict": cam.state_dict(), "pipeline": cfg.to_dict()}
+    if train_config is not None:
+        camera["train_config"] = train_config
+    args = []
+    for name, ckpt in (
+        ("camera", camera),
+        ("fusion", {"config": fusion.cfg.__dict__, "state_dict": fusion.state_dict()}),
+        ("lidar", {"config": lidar.cfg.__dict__, "state_dict": lidar.state_dict()}),
+    ):
+        torch.save(ckpt, tmp_path / f"{name}.pt")
+        args += [f"--{name}", str(tmp_path / f"{name}.pt")]
+    main([*args, *flag, "--out", str(tmp_path / "b")])
+    manifest = json.loads((tmp_path / "b" / "manifest.json").read_text())
+    assert manifest["models"]["camera"].get("flip_test", False) is want
