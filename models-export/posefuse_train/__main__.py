@@ -67,6 +67,11 @@ def fit_parser() -> argparse.ArgumentParser:
         default=0.0,
         help="keep the box frame where the facing net agrees with the heading within this many degrees",
     )
+    p.add_argument(
+        "--blend",
+        action="store_true",
+        help="the fusion graph answers the mean of the fusion and LiDAR-only nets (docs/TRAINING.md)",
+    )
     return p
 
 

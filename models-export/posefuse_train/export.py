@@ -32,7 +32,7 @@ from .config import CameraNetConfig, PipelineConfig, PointNetConfig
 from .facing_net import FacingPointNet
 from .keypoints import NAMES, WAYMO_TYPES, K
 from .metrics import CONVENTION
-from .point_net import PointNet, PointNetExport
+from .point_net import Blend, PointNet, PointNetExport
 
 OPSET = 17
 FORMAT_VERSION = 1
@@ -94,7 +94,7 @@ def check_parity(model: torch.nn.Module, path: Path, make_input, tol: float) -> 
 def export_bundle(
     out_dir: str | os.PathLike,
     camera: CameraNet | FlipTest,
-    fusion: PointNet | FacingPointNet,
+    fusion: PointNet | FacingPointNet | Blend,
     lidar: PointNet | FacingPointNet,
     pipeline: PipelineConfig,
     *,
@@ -128,6 +128,7 @@ def export_bundle(
         return make
 
     flip_test = {"flip_test": True} if isinstance(camera, FlipTest) else {}
+    blend = {"blend": fusion.names} if isinstance(fusion, Blend) else {}
     specs = {
         "camera": dict(
             file="camera.onnx",
@@ -145,7 +146,7 @@ def export_bundle(
             input="points",
             inputs={"points": [-1, n, 3 + K]},
             outputs={"keypoints": [-1, K, 3], "segmentation": [-1, n, K]},
-            extra={},
+            extra=blend,
         ),
         "point_lidar": dict(
             file="point_lidar.onnx",
@@ -259,6 +260,12 @@ def main(argv=None):
         help="export the camera net with its mirror pass inside the graph (docs/TRAINING.md, 'Flip test'); "
         "a camera checkpoint trained with flip_test gets it without the flag",
     )
+    p.add_argument(
+        "--blend",
+        action="store_true",
+        help="the fusion graph answers the mean of the fusion and the LiDAR-only networks "
+        "(docs/TRAINING.md, 'Blending the point networks')",
+    )
     p.add_argument("--metrics", help="JSON file with held-out metrics {fusion, lidar, camera}")
     p.add_argument("--name", default="default")
     p.add_argument("--version", default=__version__, help="the bundle's version, which every response names")
@@ -305,6 +312,8 @@ def main(argv=None):
                 "fusion": first_f.get("train_config"),
                 "lidar": first_l.get("train_config"),
             }
+        if a.blend:
+            fusion = Blend([fusion, lidar], ["fusion", "lidar"])
         metrics = json.loads(Path(a.metrics).read_text()) if a.metrics else None
         trained = True
     manifest = export_bundle(

@@ -38,6 +38,7 @@ from .camera_net import CameraNet, FlipTest, as_served
 from .export import camera_from_checkpoint, export_bundle, load_checkpoint, point_from_checkpoint
 from .facing_net import FacingPointNet
 from .metrics import CONVENTION
+from .point_net import Blend
 from .shards import ShardSet
 from .train import RunOptions, Stopped, checkpoint, stream_labels, train_camera, train_point
 
@@ -68,6 +69,9 @@ class FitArgs:
     facing_turns: int = 1
     facing_passes: int = 1
     facing_agree_deg: float = 0.0
+    # the fusion graph answers the mean of the fusion and LiDAR-only nets (docs/TRAINING.md,
+    # "Blending the point networks")
+    blend: bool = False
 
 
 def resolve_device(device: str) -> str:
@@ -287,6 +291,8 @@ def fit(a: FitArgs) -> dict | None:
     facing = None
     if a.facing_from:
         nets, facing = _with_facing(a, nets)
+    if a.blend:
+        nets["fusion"] = Blend([nets["fusion"], nets["lidar"]], ["fusion", "lidar"])
     manifest = _export(a, recipe, work, camera, nets, pipeline, train, test, device, d, log, facing)
     timings["total_s"] = time.time() - t_start
     manifest["training"]["time_s"] = {**manifest["training"].get("time_s", {}), **timings}
@@ -398,6 +404,7 @@ def main_fit(argv, parser) -> int:
         facing_turns=a.facing_turns,
         facing_passes=a.facing_passes,
         facing_agree_deg=a.facing_agree_deg,
+        blend=a.blend,
     )
     # a run ends with a bundle, or stopped on purpose (--stop-after, other ranks): both succeed
     try:

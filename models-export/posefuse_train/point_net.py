@@ -53,6 +53,26 @@ class PointNet(nn.Module):
         return keypoints, seg.reshape(-1, n, K)
 
 
+class Blend(nn.Module):
+    """The mean of several point networks' answers, each given the leading point features it takes
+    (a LiDAR-only network the xyz of a fusion network's input). The fusion and LiDAR-only networks
+    err differently (docs/RESULTS.md, "Where the camera's evidence goes"), so their mean beats
+    either, and it beats two networks of one modality."""
+
+    def __init__(self, nets: list[nn.Module], names: list[str]):
+        super().__init__()
+        if len(nets) < 2 or len(names) != len(nets):
+            raise ValueError("a blend takes two or more networks, each named")
+        self.nets, self.names = nn.ModuleList(nets), list(names)
+        self.cfg = max((n.cfg for n in nets), key=lambda c: c.in_features)
+
+    def forward(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        answers = [net(points[..., : net.cfg.in_features]) for net in self.nets]
+        keypoints = torch.stack([k for k, _ in answers]).mean(dim=0)
+        seg = torch.stack([s for _, s in answers]).mean(dim=0)
+        return keypoints, seg
+
+
 class PointNetExport(nn.Module):
     """The exported form: segmentation as sigmoid scores."""
 

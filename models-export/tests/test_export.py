@@ -12,7 +12,7 @@ from posefuse_train.camera_net import FlipTest
 from posefuse_train.config import CameraNetConfig, PipelineConfig, PointNetConfig
 from posefuse_train.export import ParityError, check_parity, export_bundle, export_onnx, untrained_models
 from posefuse_train.keypoints import FLIP, NAMES, WAYMO_TYPES, K
-from posefuse_train.point_net import PointNet
+from posefuse_train.point_net import Blend, PointNet
 
 PREPROCESSING_KEYS = {
     "image_size",
@@ -174,6 +174,25 @@ def test_a_flip_test_camera_exports_its_mirror_pass_inside_the_graph(tmp_path):
     np.testing.assert_allclose(run("flip", x), want, atol=1e-5)
 
 
+def checkpoint_args(tmp_path, camera_train_config=None) -> list[str]:
+    """Small camera, fusion and LiDAR-only checkpoints written to tmp_path, as export's arguments."""
+    cfg = PipelineConfig.with_image_size(32)
+    cfg.num_points = 64
+    cam, fusion, lidar = small_models(cfg)
+    camera = {"config": cam.cfg.__dict__, "state_dict": cam.state_dict(), "pipeline": cfg.to_dict()}
+    if camera_train_config is not None:
+        camera["train_config"] = camera_train_config
+    args = []
+    for name, ckpt in (
+        ("camera", camera),
+        ("fusion", {"config": fusion.cfg.__dict__, "state_dict": fusion.state_dict()}),
+        ("lidar", {"config": lidar.cfg.__dict__, "state_dict": lidar.state_dict()}),
+    ):
+        torch.save(ckpt, tmp_path / f"{name}.pt")
+        args += [f"--{name}", str(tmp_path / f"{name}.pt")]
+    return args
+
+
 @pytest.mark.parametrize(
     ("train_config", "flag", "want"),
     [
@@ -186,20 +205,48 @@ def test_a_flip_test_camera_exports_its_mirror_pass_inside_the_graph(tmp_path):
 def test_the_cli_exports_the_flip_test_from_the_flag_or_the_checkpoint(tmp_path, train_config, flag, want):
     from posefuse_train.export import main
 
+    main([*checkpoint_args(tmp_path, train_config), *flag, "--out", str(tmp_path / "b")])
+    manifest = json.loads((tmp_path / "b" / "manifest.json").read_text())
+    assert manifest["models"]["camera"].get("flip_test", False) is want
+
+
+@pytest.mark.parametrize("blend", [False, True])
+def test_the_cli_blends_the_point_networks_when_asked(tmp_path, blend):
+    from posefuse_train.export import main
+
+    main([*checkpoint_args(tmp_path), *(["--blend"] if blend else []), "--out", str(tmp_path / "b")])
+    manifest = json.loads((tmp_path / "b" / "manifest.json").read_text())
+    assert manifest["models"]["point_fusion"].get("blend") == (["fusion", "lidar"] if blend else None)
+    assert "blend" not in manifest["models"]["point_lidar"]
+
+
+def test_a_blend_exports_the_mean_of_its_networks_each_on_the_features_it_takes(tmp_path):
     cfg = PipelineConfig.with_image_size(32)
     cfg.num_points = 64
     cam, fusion, lidar = small_models(cfg)
-    camera = {"config": cam.cfg.__dict__, "state_dict": cam.state_dict(), "pipeline": cfg.to_dict()}
-    if train_config is not None:
-        camera["train_config"] = train_config
-    args = []
-    for name, ckpt in (
-        ("camera", camera),
-        ("fusion", {"config": fusion.cfg.__dict__, "state_dict": fusion.state_dict()}),
-        ("lidar", {"config": lidar.cfg.__dict__, "state_dict": lidar.state_dict()}),
-    ):
-        torch.save(ckpt, tmp_path / f"{name}.pt")
-        args += [f"--{name}", str(tmp_path / f"{name}.pt")]
-    main([*args, *flag, "--out", str(tmp_path / "b")])
-    manifest = json.loads((tmp_path / "b" / "manifest.json").read_text())
-    assert manifest["models"]["camera"].get("flip_test", False) is want
+    for net in (fusion, lidar):
+        net.eval()
+    blend = Blend([fusion, lidar], ["fusion", "lidar"])
+    manifest = export_bundle(tmp_path / "b", cam, blend, lidar, cfg, trained=False)
+    assert manifest["models"]["point_fusion"]["blend"] == ["fusion", "lidar"]
+    assert "blend" not in manifest["models"]["point_lidar"]
+    sess = ort.InferenceSession(str(tmp_path / "b" / "point_fusion.onnx"), providers=["CPUExecutionProvider"])
+    x = np.random.default_rng(0).standard_normal((3, 64, 3 + K)).astype(np.float32)
+    keypoints, seg = sess.run(None, {"points": x})
+    with torch.no_grad():
+        t = torch.from_numpy(x)
+        (kf, sf), (kl, sl) = fusion(t), lidar(t[..., :3])
+    # the two networks answer differently, so the mean is neither of them
+    assert (kf - kl).abs().max() > 1e-3
+    np.testing.assert_allclose(keypoints, (0.5 * (kf + kl)).numpy(), atol=1e-5)
+    np.testing.assert_allclose(seg, torch.sigmoid(0.5 * (sf + sl)).numpy(), atol=1e-5)
+
+
+def test_a_blend_takes_two_or_more_named_networks():
+    cfg = PipelineConfig.with_image_size(32)
+    _, fusion, lidar = small_models(cfg)
+    with pytest.raises(ValueError):
+        Blend([fusion], ["fusion"])
+    with pytest.raises(ValueError):
+        Blend([fusion, lidar], ["fusion"])
+    assert Blend([lidar, fusion], ["lidar", "fusion"]).cfg.in_features == 3 + K

@@ -3,6 +3,7 @@ an interrupted run to the same weights; two processes (DDP over gloo) against on
 
 import json
 import os
+import shutil
 import subprocess
 import sys
 from pathlib import Path
@@ -302,3 +303,20 @@ def test_a_facing_weight_gives_the_camera_net_its_facing_head():
     assert net.facing_head and train.facing_weight == 0.001
     net, train = recipes.camera_config(recipes.load("cpu", []))
     assert not net.facing_head and train.facing_weight == 0.0
+
+
+def test_blend_exports_the_mean_of_the_runs_point_nets_as_its_fusion_graph(
+    synthetic_sets, uninterrupted, tmp_path
+):
+    """docs/TRAINING.md, "Blending the point networks": a finished run's work directory, exported
+    again with --blend, trains nothing and scores the blend as its fusion mode."""
+    first_out, first = uninterrupted
+    work = tmp_path / "bundle.work"
+    shutil.copytree(first_out.with_name("bundle.work"), work)
+    manifest = fit(args(synthetic_sets, tmp_path / "bundle", work=work, resume=True, blend=True))
+    assert manifest["models"]["point_fusion"]["blend"] == ["fusion", "lidar"]
+    assert "blend" not in first["models"]["point_fusion"]
+    assert equal(stage_weights(work), stage_weights(first_out.with_name("bundle.work")))
+    held, before = manifest["metrics"]["held_out"], first["metrics"]["held_out"]
+    assert held["lidar"] == before["lidar"] and held["camera"] == before["camera"]
+    assert held["fusion"]["mpjpe_3d_m"] != before["fusion"]["mpjpe_3d_m"]
