@@ -78,7 +78,11 @@ def collect(
 ) -> tuple[dict, dict, np.ndarray, PipelineConfig]:
     """Every bundle's fusion and LiDAR-only answers (camera lifting below min_points, as served),
     the first bundle's camera-only answers, the evaluation data and the lines of sight."""
-    cfgs = [json.loads((b / "manifest.json").read_text())["preprocessing"] for b in bundles]
+    manifests = [json.loads((b / "manifest.json").read_text()) for b in bundles]
+    for b, m in zip(bundles, manifests, strict=True):
+        if "blend" in m["models"]["point_fusion"]:
+            raise SystemExit(f"{b}: its fusion graph is already a blend; export it without --blend")
+    cfgs = [m["preprocessing"] for m in manifests]
     if any(c != cfgs[0] for c in cfgs):
         raise SystemExit("the bundles pre-process differently: they cannot share one camera pass")
     cfg = PipelineConfig.from_dict(cfgs[0])

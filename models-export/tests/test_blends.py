@@ -13,6 +13,7 @@ from experiments import blends
 from posefuse_train.data import read_meta
 from posefuse_train.export import export_bundle
 from posefuse_train.keypoints import NAMES, K
+from posefuse_train.point_net import Blend
 
 
 def test_the_line_of_sight_is_turned_into_the_box_frame():
@@ -82,3 +83,11 @@ def test_the_command_scores_two_bundles_and_their_pairs(synthetic_sets, tmp_path
     for part in report["axes"]["F0"].values():
         # the parts of an error are legs of a right triangle: neither exceeds the whole on average
         assert part["along"] <= part["error"] + 1e-12 and part["across"] <= part["error"] + 1e-12
+
+
+def test_a_bundle_already_blended_is_refused(synthetic_sets, tmp_path):
+    _, cfg = read_meta(synthetic_sets[0])
+    cam, fusion, lidar = small_models(cfg)
+    export_bundle(tmp_path / "b", cam, Blend([fusion, lidar], ["fusion", "lidar"]), lidar, cfg, trained=False)
+    with pytest.raises(SystemExit, match="already a blend"):
+        blends.main(["--test", str(synthetic_sets[1]), "--bundle", str(tmp_path / "b")])
