@@ -235,3 +235,16 @@ async fn health_models_metrics_and_openapi() {
     assert_eq!(e["error"]["code"], "not_found");
     s.shutdown().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_heading_stage_keeps_its_own_precision_when_the_main_camera_serves_int8() {
+    // models/view has no INT8 camera file: `--precision int8` names the main bundle's camera only.
+    let mut c = config();
+    c.heading_model_dir = Some(model_dir().with_file_name("view"));
+    c.runtime.precision = Some(posefuse::runtime::Precision::Int8);
+    let s = start(c).await;
+    let r = post_frame(&s, &fusion_frame()).await;
+    assert_eq!(r.status(), 200);
+    let body: PoseResponse = r.json().await.unwrap();
+    assert!(!body.persons.is_empty());
+}

@@ -184,4 +184,7 @@ fn with_every_heading_flipped_the_heading_stage_keeps_the_default_bundle_accurat
     // Flipped headings: the default bundle reads every person backwards; the stage turns them back.
     assert!(alone < 0.1, "default bundle alone: OKS@3D {alone}");
     assert!(staged > 0.45, "with the heading stage: OKS@3D {staged}");
+    // --precision names the main bundle's camera: the view bundle, which has no INT8 file, keeps its own.
+    let int8 = eval_oks(&data, &["--heading-model", view.to_str().unwrap(), "--precision", "int8"]);
+    assert!(int8 > 0.45, "with the heading stage, the main camera in INT8: OKS@3D {int8}");
 }

@@ -37,7 +37,8 @@ pub struct RuntimeArgs {
     #[arg(long, env = "POSEFUSE_DEVICE", default_value = "cpu")]
     pub device: Device,
     /// The camera network's precision: fp32, or int8 where the bundle has an INT8 variant
-    /// (docs/BUNDLE.md, "Precision"; default: the bundle manifest's `precision`, else fp32).
+    /// (docs/BUNDLE.md, "Precision"; default: the bundle manifest's `precision`, else fp32). A
+    /// `--heading-model` bundle keeps its own manifest's.
     #[arg(long, env = "POSEFUSE_PRECISION")]
     pub precision: Option<Precision>,
     /// Inference worker threads; each owns its own ONNX Runtime sessions (0: one per 4 cores).

@@ -39,7 +39,8 @@ pub fn cli_predictor(a: &RuntimeArgs) -> anyhow::Result<Predictor> {
     let config = a.runtime_config();
     tracing::info!(model_dir = %a.model_dir.display(), ?config, "effective configuration");
     let runtime = Runtime::load(&a.model_dir, &config)?;
-    let stage = a.heading_model.as_ref().map(|dir| Runtime::load(dir, &config)).transpose()?;
+    let stage_config = config.for_heading_stage();
+    let stage = a.heading_model.as_ref().map(|dir| Runtime::load(dir, &stage_config)).transpose()?;
     if !runtime.wait_ready(Duration::from_secs(300))
         || !stage.as_ref().is_none_or(|s| s.wait_ready(Duration::from_secs(300)))
     {

@@ -53,6 +53,13 @@ impl RuntimeConfig {
         device: super::Device::Cpu,
         precision: None,
     };
+
+    /// The configuration a heading-stage bundle loads with: this one, its camera at its own
+    /// manifest's precision. `--precision` names the main bundle's camera; a heading model
+    /// without that variant (models/view has no INT8 file) would otherwise refuse to load.
+    pub fn for_heading_stage(&self) -> RuntimeConfig {
+        RuntimeConfig { precision: None, ..self.clone() }
+    }
 }
 
 impl Default for RuntimeConfig {
@@ -422,4 +429,28 @@ fn run_batch(models: &mut Models, kind: ModelKind, inputs: &[&[f32]]) -> (Vec<Re
         })
         .collect();
     (outputs, inference)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn a_heading_stage_keeps_everything_but_the_main_cameras_precision() {
+        let main = RuntimeConfig {
+            workers: 3,
+            intra_threads: 2,
+            max_batch: 5,
+            batch_wait: Duration::from_millis(7),
+            queue_size: 11,
+            precision: Some(super::super::Precision::Int8),
+            ..RuntimeConfig::DEFAULT
+        };
+        let stage = main.for_heading_stage();
+        assert_eq!(stage.precision, None);
+        assert_eq!(
+            (stage.workers, stage.intra_threads, stage.max_batch, stage.batch_wait, stage.queue_size),
+            (3, 2, 5, Duration::from_millis(7), 11)
+        );
+    }
 }

@@ -146,7 +146,8 @@ impl App {
         let mut predictor =
             Predictor::with_admission(runtime, admission).with_limits(config.frame_limits).with_refine(config.refine);
         if let Some(dir) = &config.heading_model_dir {
-            predictor = predictor.with_heading_stage(Runtime::load(dir, &config.runtime)?, config.heading_agree_deg);
+            predictor = predictor
+                .with_heading_stage(Runtime::load(dir, &config.runtime.for_heading_stage())?, config.heading_agree_deg);
         }
         let reloader = reload::Reloader::new(predictor.clone(), config.model_dir.clone(), config.runtime.clone());
         let state = AppState {
