@@ -170,12 +170,14 @@ fn setup() -> Setup {
         let (reports, preds) = python(&copy, &data, "auto", &dir.join(format!("{name}.json")));
         runs.insert(name, Run { serve, trainer: reports["auto"].clone(), trainer_predictions: preds["auto"].clone() });
     }
-    // sub-cell sampling: a copy whose manifest asks for it (the networks are the same)
-    let bilinear = bundle_copy(&bundle, &dir.join("bilinear"), |m| m["preprocessing"]["sampling"] = json!("bilinear"));
-    let served = serve(&rt, &bilinear, &frames, &["fusion"]).remove(0);
-    let (reports, preds) = python(&bilinear, &data, "fusion", &dir.join("bilinear.json"));
+    // the heatmap sampling the bundle does not use (nearest cell or bilinear): a copy whose
+    // manifest asks for it (the networks are the same)
+    let sampling = if manifest["preprocessing"]["sampling"] == "bilinear" { "nearest" } else { "bilinear" };
+    let copy = bundle_copy(&bundle, &dir.join("other_sampling"), |m| m["preprocessing"]["sampling"] = json!(sampling));
+    let served = serve(&rt, &copy, &frames, &["fusion"]).remove(0);
+    let (reports, preds) = python(&copy, &data, "fusion", &dir.join("other_sampling.json"));
     runs.insert(
-        "fusion_bilinear",
+        "fusion_other_sampling",
         Run { serve: served, trainer: reports["fusion"].clone(), trainer_predictions: preds["fusion"].clone() },
     );
     // the camera network at the precision the bundle does not serve: a copy whose manifest makes
@@ -334,11 +336,11 @@ fn fusion_mode_at_the_other_precision_serves_what_the_trainer_evaluates() {
     assert!(changed > 1e-6, "the other camera file changed nothing: was it loaded?");
 }
 
-/// Bilinear sampling (docs/BUNDLE.md, "Heatmap grid and sampling") serves what the trainer
-/// evaluates with it, and it is not the nearest cell.
+/// The heatmap sampling the bundle does not use (docs/BUNDLE.md, "Heatmap grid and sampling":
+/// nearest cell or bilinear) serves what the trainer evaluates with it, and it is not the other.
 #[test]
-fn fusion_mode_with_bilinear_sampling_serves_what_the_trainer_evaluates() {
-    assert!(fusion_variant("fusion_bilinear") > 1e-6, "bilinear sampling changed nothing: was it read?");
+fn fusion_mode_with_the_other_sampling_serves_what_the_trainer_evaluates() {
+    assert!(fusion_variant("fusion_other_sampling") > 1e-6, "the other sampling changed nothing: was it read?");
 }
 
 fn auto(name: &str, boundary_mode: &str) {

@@ -77,12 +77,17 @@ fn inconsistent_bundles_are_refused_precisely() {
     let e = start_error(d.path());
     assert!(e.contains("models.point_fusion.inputs.points: the ONNX file says shape"), "{e}");
 
-    // Manifest shapes that disagree with its own preprocessing.
+    // Manifest shapes that disagree with its own preprocessing: a crop twice the bundle's.
     let d = copy_bundle();
-    edit_manifest(d.path(), |m| m["preprocessing"]["image_size"] = 128.into());
+    let mut size = 0;
+    edit_manifest(d.path(), |m| {
+        size = 2 * m["preprocessing"]["image_size"].as_u64().unwrap();
+        m["preprocessing"]["image_size"] = size.into();
+    });
     let e = start_error(d.path());
     assert!(
-        e.contains("image_size 128 must be a multiple of heatmap_size") || e.contains("models.camera.inputs.image"),
+        e.contains(&format!("image_size {size} must be a multiple of heatmap_size"))
+            || e.contains("models.camera.inputs.image"),
         "{e}"
     );
 

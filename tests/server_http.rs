@@ -201,8 +201,10 @@ async fn health_models_metrics_and_openapi() {
     let r: Value = c.get(s.url("/readyz")).send().await.unwrap().json().await.unwrap();
     assert_eq!(r["status"], "ready");
     let m: Value = c.get(s.url("/v1/models")).send().await.unwrap().json().await.unwrap();
-    assert_eq!(m["name"], "default");
-    assert_eq!(m["preprocessing"]["image_size"], 64);
+    let manifest: Value = serde_json::from_slice(&std::fs::read(model_dir().join("manifest.json")).unwrap()).unwrap();
+    assert_eq!((&m["name"], &m["version"]), (&manifest["name"], &manifest["version"]));
+    assert_eq!(m["preprocessing"]["image_size"], manifest["preprocessing"]["image_size"]);
+    assert_eq!(m["preprocessing"]["heatmap_size"], manifest["preprocessing"]["heatmap_size"]);
     // One request so the histograms have samples.
     assert_eq!(post_frame(&s, &fusion_frame()).await.status(), 200);
     let text = c.get(s.url("/metrics")).send().await.unwrap().text().await.unwrap();

@@ -158,22 +158,36 @@ def test_the_builtin_recipes_load_and_overrides_are_checked():
         recipes.load("nosuch")
 
 
-def test_the_cpu_recipe_is_the_default_bundles_recipe():
-    """The committed bundle was made by `fit` from the cpu recipe: its manifest records that recipe
-    value for value, and the networks and steps the recipe resolves to."""
+def test_the_default_bundle_is_fit_from_the_built_in_recipe_it_names():
+    """The committed bundle was made by `fit --blend` from a built-in recipe (docs/BUNDLE.md,
+    "The default bundle"): its manifest records that recipe value for value, the networks and
+    steps the recipe resolves to, the command that names it, and a fusion graph that blends the
+    two point nets."""
     manifest = json.loads((MODELS_EXPORT.parent / "models" / "default" / "manifest.json").read_text())
     training = manifest["training"]
-    cpu = recipes.load("cpu")
-    assert training["recipe"] == json.loads(json.dumps(cpu))
+    name = training["recipe"]["recipe"]["name"]
+    assert name in recipes.builtin()
+    assert f"--recipe {name} " in training["command"] and " --blend " in training["command"]
+    recipe = recipes.load(name)
+    assert training["recipe"] == json.loads(json.dumps(recipe))
     cfg = training["config"]
-    net, cam = recipes.camera_config(cpu)
+    net, cam = recipes.camera_config(recipe)
     assert {k: cfg["camera"][k] for k in vars(net)} == vars(net)
-    assert (cfg["camera"]["steps"], cfg["camera"]["upsample"]) == (cam.steps, "shuffle")
+    assert (cfg["camera"]["steps"], cfg["camera"]["flip_test"]) == (cam.steps, cam.flip_test)
+    assert manifest["models"]["camera"].get("flip_test", False) == cam.flip_test
     for stage, fusion in (("fusion", True), ("lidar", False)):
-        pnet, pt = recipes.point_config(cpu, fusion)
+        pnet, pt = recipes.point_config(recipe, fusion)
         assert {k: list(v) if isinstance(v, tuple) else v for k, v in vars(pnet).items()} == cfg[stage]["net"]
         assert cfg[stage]["steps"] == pt.steps, stage
+    assert manifest["models"]["point_fusion"]["blend"] == ["fusion", "lidar"]
+    pre = manifest["preprocessing"]
+    assert pre["image_size"] == recipe["recipe"]["image_size"]
+    assert (pre["smoothing_kernel"], pre["smoothing_sigma"]) == (
+        recipe["pipeline"]["smoothing_kernel"],
+        recipe["pipeline"]["smoothing_sigma"],
+    )
     assert training["data"]["train"]["samples"] == 20000
+    assert training["data"]["train"]["meta"]["profile"] == "street-hard"
 
 
 def test_a_recipe_with_a_finer_heatmap_grid_trains_and_exports_it(synthetic_sets, tmp_path):
