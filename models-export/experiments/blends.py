@@ -82,9 +82,19 @@ def collect(
     for b, m in zip(bundles, manifests, strict=True):
         if "blend" in m["models"]["point_fusion"]:
             raise SystemExit(f"{b}: its fusion graph is already a blend; export it without --blend")
+    # the comparison is between point nets behind one camera net, on the same inputs
+    cameras = {m["models"]["camera"]["sha256"] for m in manifests}
+    if len(cameras) > 1:
+        raise SystemExit(
+            "the bundles have different camera nets (models.camera.sha256): "
+            "train the others' point nets behind the first's camera"
+        )
     cfgs = [m["preprocessing"] for m in manifests]
     if any(c != cfgs[0] for c in cfgs):
-        raise SystemExit("the bundles pre-process differently: they cannot share one camera pass")
+        raise SystemExit(
+            "the bundles pre-process differently (manifest preprocessing): "
+            "their nets do not see the same inputs"
+        )
     cfg = PipelineConfig.from_dict(cfgs[0])
     sess = [sessions(b, threads, "fp32") for b in bundles]
     nets: dict[str, list] = {}

@@ -91,3 +91,19 @@ def test_a_bundle_already_blended_is_refused(synthetic_sets, tmp_path):
     export_bundle(tmp_path / "b", cam, Blend([fusion, lidar], ["fusion", "lidar"]), lidar, cfg, trained=False)
     with pytest.raises(SystemExit, match="already a blend"):
         blends.main(["--test", str(synthetic_sets[1]), "--bundle", str(tmp_path / "b")])
+
+
+def test_bundles_with_different_camera_nets_are_refused(synthetic_sets, tmp_path):
+    _, cfg = read_meta(synthetic_sets[0])
+    bundles = []
+    for seed in (0, 1):
+        cam, fusion, lidar = small_models(cfg)
+        torch.manual_seed(seed)
+        with torch.no_grad():
+            for p in cam.parameters():
+                p.add_(0.1 * seed * torch.randn_like(p))
+        bundles.append(tmp_path / f"b{seed}")
+        export_bundle(bundles[-1], cam, fusion, lidar, cfg, trained=False)
+    args = ["--test", str(synthetic_sets[1]), "--bundle", str(bundles[0]), "--bundle", str(bundles[1])]
+    with pytest.raises(SystemExit, match="different camera nets"):
+        blends.main(args)
