@@ -295,12 +295,28 @@ def fit(a: FitArgs) -> dict | None:
         nets["fusion"] = Blend([nets["fusion"], nets["lidar"]], ["fusion", "lidar"])
     manifest = _export(a, recipe, work, camera, nets, pipeline, train, test, device, d, log, facing)
     timings["total_s"] = time.time() - t_start
+    # a resumed run's own timings cover only what it did; the log has every invocation
+    runs = run_times(work / "log.jsonl")
+    timings.update(runs_s=runs, all_runs_s=round(sum(runs), 1))
     manifest["training"]["time_s"] = {**manifest["training"].get("time_s", {}), **timings}
     text = json.dumps(manifest, indent=2) + "\n"
     (a.out / "manifest.json").write_text(text)
     log({"event": "done", "time_s": timings})
     d.barrier()
     return json.loads(text)
+
+
+def run_times(log_path: Path) -> list[float]:
+    """Wall seconds of each invocation in a run's log.jsonl, oldest first: from its `start` record
+    to its last record (an interrupted invocation ends at its last logged step)."""
+    runs: list[list[float]] = []
+    for line in log_path.read_text().splitlines():
+        record = json.loads(line)
+        if record.get("event") == "start":
+            runs.append([record["time"], record["time"]])
+        elif runs:
+            runs[-1][1] = record["time"]
+    return [round(end - begin, 1) for begin, end in runs]
 
 
 def _finish(log, d, net, pipeline, cfg, train_path, path: Path, stage: str, timings) -> None:

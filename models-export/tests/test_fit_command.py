@@ -14,7 +14,7 @@ import torch
 from synthetic import write_dataset
 
 from posefuse_train import recipe as recipes
-from posefuse_train.fit import FitArgs, fit
+from posefuse_train.fit import FitArgs, fit, run_times
 from posefuse_train.keypoints import K
 
 # A few steps of the cpu recipe, sized for the tests' 32 px synthetic sets.
@@ -334,3 +334,22 @@ def test_blend_exports_the_mean_of_the_runs_point_nets_as_its_fusion_graph(
     held, before = manifest["metrics"]["held_out"], first["metrics"]["held_out"]
     assert held["lidar"] == before["lidar"] and held["camera"] == before["camera"]
     assert held["fusion"]["mpjpe_3d_m"] != before["fusion"]["mpjpe_3d_m"]
+    # the export's own time is seconds; the training it exports is the first invocation's
+    runs = manifest["training"]["time_s"]["runs_s"]
+    assert len(runs) == 2 and runs[0] >= 0.5 * first["training"]["time_s"]["total_s"]
+    assert manifest["training"]["time_s"]["all_runs_s"] == round(sum(runs), 1)
+    assert first["training"]["time_s"]["runs_s"] == [first["training"]["time_s"]["all_runs_s"]]
+
+
+def test_run_times_measure_each_invocation_from_its_start_to_its_last_record(tmp_path):
+    records = [
+        {"time": 10.0, "event": "start"},
+        {"time": 12.5, "loss": 1.0},
+        {"time": 40.0, "event": "stopped"},
+        {"time": 100.0, "event": "start"},
+        {"time": 101.0, "event": "stage_done"},
+        {"time": 103.5, "event": "done"},
+    ]
+    log = tmp_path / "log.jsonl"
+    log.write_text("".join(json.dumps(r) + "\n" for r in records))
+    assert run_times(log) == [30.0, 3.5]
