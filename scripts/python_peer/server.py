@@ -13,8 +13,9 @@ What it does per request, as docs/ARCHITECTURE.md describes the server's pipelin
   ChaCha choice the same way, so the two choose different but equally random points);
 - projects the chosen points through the camera model of docs/DATA.md (Waymo's: x forward,
   OpenCV distortion);
-- runs the camera net on all crops at once, smooths the heatmaps (separable Gaussian, zero padding),
-  samples them at the projected points and runs the fusion point net on all persons at once.
+- runs the camera net (the manifest's precision) on all crops at once, smooths the heatmaps
+  (separable Gaussian, zero padding), samples them at the projected points as the manifest says
+  (nearest cell or bilinear) and runs the fusion point net on all persons at once.
 
 Persons with fewer than `min_points` points get the LiDAR-only net (the server lifts them from the
 camera instead); frames without an image get the LiDAR-only net, as in the server's auto mode.
@@ -45,7 +46,11 @@ cv2.setNumThreads(1)
 def session(key: str) -> ort.InferenceSession:
     opts = ort.SessionOptions()
     opts.intra_op_num_threads = int(os.environ.get("PEER_ORT_THREADS", "1"))
-    path = BUNDLE / MANIFEST["models"][key]["file"]
+    # the file the server serves: the manifest's precision picks a network's variant, if it has one
+    # (docs/BUNDLE.md, "Precision")
+    entry = MANIFEST["models"][key]
+    variant = entry.get("variants", {}).get(MANIFEST.get("precision", "fp32"))
+    path = BUNDLE / (variant or entry)["file"]
     return ort.InferenceSession(str(path), opts, providers=["CPUExecutionProvider"])
 
 
@@ -62,6 +67,9 @@ def gaussian_1d(size: int, sigma: float) -> np.ndarray:
 
 
 KERNEL = gaussian_1d(int(CFG["smoothing_kernel"]), float(CFG["smoothing_sigma"]))
+SAMPLING = CFG.get("sampling", "nearest")
+if SAMPLING not in ("nearest", "bilinear"):
+    raise SystemExit(f"the peer samples heatmaps nearest or bilinear, not {SAMPLING}")
 
 app = FastAPI()
 
@@ -118,14 +126,29 @@ def project(vehicle: np.ndarray, cal: dict) -> np.ndarray:
 
 
 def features(heatmaps: np.ndarray, uv: np.ndarray) -> np.ndarray:
-    """Smoothed heatmaps [K,H,W] sampled at model pixels uv [N,2] (nearest cell) -> [N,K]."""
-    k, h, w = heatmaps.shape
+    """Smoothed heatmaps [K,H,W] sampled at model pixels uv [N,2] -> [N,K]."""
     smooth = np.stack([cv2.sepFilter2D(m, -1, KERNEL, KERNEL, borderType=cv2.BORDER_CONSTANT) for m in heatmaps])
     finite = np.isfinite(uv).all(axis=1)
     safe = np.where(finite[:, None], uv, 0.0).astype(np.float32)
-    j = np.clip(np.floor(safe[:, 0] * np.float32(w / S) + np.float32(0.5)), 0, w - 1).astype(int)
-    i = np.clip(np.floor(safe[:, 1] * np.float32(h / S) + np.float32(0.5)), 0, h - 1).astype(int)
-    return smooth[:, i, j].T * finite[:, None]
+    return sample(smooth, safe, SAMPLING) * finite[:, None]
+
+
+def sample(smooth: np.ndarray, uv: np.ndarray, sampling: str) -> np.ndarray:
+    """docs/BUNDLE.md, "Heatmap grid and sampling": the cell a point falls in (`nearest`), or the
+    value between the four cells around it, cell j's centre at j * S / H (`bilinear`)."""
+    _, h, w = smooth.shape
+    x, y = uv[:, 0] * np.float32(w / S), uv[:, 1] * np.float32(h / S)
+    if sampling == "nearest":
+        j = np.clip(np.floor(x + np.float32(0.5)), 0, w - 1).astype(int)
+        i = np.clip(np.floor(y + np.float32(0.5)), 0, h - 1).astype(int)
+        return smooth[:, i, j].T
+    x, y = np.clip(x, 0, w - 1), np.clip(y, 0, h - 1)
+    j0, i0 = np.floor(x).astype(int), np.floor(y).astype(int)
+    j1, i1 = np.minimum(j0 + 1, w - 1), np.minimum(i0 + 1, h - 1)
+    tx, ty = x - j0, y - i0
+    top = smooth[:, i0, j0] * (1 - tx) + smooth[:, i0, j1] * tx
+    bottom = smooth[:, i1, j0] * (1 - tx) + smooth[:, i1, j1] * tx
+    return (top * (1 - ty) + bottom * ty).T
 
 
 def to_vehicle(local: np.ndarray, b: dict) -> np.ndarray:
