@@ -3,8 +3,13 @@ persons both answered with the fusion network, every labelled keypoint in the MP
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
+import pytest
 from peer_compare import accuracy, keypoints
+from python_peer.sampling import sample
 
 GT = np.zeros((13, 3))
 
@@ -62,3 +67,15 @@ def test_an_occluded_keypoint_counts_as_labelled():
     moved["keypoints_3d"][3] = [1.3, 0.0, 0.0]  # only the occluded keypoint is off, by 1.3 m
     r = accuracy(fx, ours, [{"persons": [moved]}])
     assert r["mpjpe_cm"]["peer"] == 10.0  # 130 cm / 13 labelled keypoints
+
+
+@pytest.mark.parametrize("sampling,key", [("nearest", "features"), ("bilinear", "bilinear_features")])
+def test_the_peer_samples_heatmaps_as_the_golden_vectors_say(sampling, key):
+    """The peer's heatmap sampling is the server's and the trainer's (tests/golden/fusion.json)."""
+    g = json.loads((Path(__file__).resolve().parents[2] / "tests/golden/fusion.json").read_text())
+    smooth = np.asarray(g["smoothed"], np.float32).reshape(g["k"], g["h"], g["w"])
+    finite = np.array([u is not None for u in g["uv"]])
+    uv = np.asarray([u if u is not None else [0.0, 0.0] for u in g["uv"]], np.float32)
+    got = sample(smooth, uv, g["image_size"], sampling) * finite[:, None]
+    want = np.asarray(g[key], np.float32).reshape(len(uv), g["k"])
+    assert np.abs(got - want).max() <= 1e-6

@@ -34,6 +34,7 @@ import numpy as np
 import onnxruntime as ort
 from fastapi import FastAPI, HTTPException, Request
 from fastapi.responses import Response
+from sampling import sample
 
 BUNDLE = Path(os.environ.get("MODEL_DIR", "models/default"))
 MANIFEST = json.loads((BUNDLE / "manifest.json").read_text())
@@ -130,25 +131,7 @@ def features(heatmaps: np.ndarray, uv: np.ndarray) -> np.ndarray:
     smooth = np.stack([cv2.sepFilter2D(m, -1, KERNEL, KERNEL, borderType=cv2.BORDER_CONSTANT) for m in heatmaps])
     finite = np.isfinite(uv).all(axis=1)
     safe = np.where(finite[:, None], uv, 0.0).astype(np.float32)
-    return sample(smooth, safe, SAMPLING) * finite[:, None]
-
-
-def sample(smooth: np.ndarray, uv: np.ndarray, sampling: str) -> np.ndarray:
-    """docs/BUNDLE.md, "Heatmap grid and sampling": the cell a point falls in (`nearest`), or the
-    value between the four cells around it, cell j's centre at j * S / H (`bilinear`)."""
-    _, h, w = smooth.shape
-    x, y = uv[:, 0] * np.float32(w / S), uv[:, 1] * np.float32(h / S)
-    if sampling == "nearest":
-        j = np.clip(np.floor(x + np.float32(0.5)), 0, w - 1).astype(int)
-        i = np.clip(np.floor(y + np.float32(0.5)), 0, h - 1).astype(int)
-        return smooth[:, i, j].T
-    x, y = np.clip(x, 0, w - 1), np.clip(y, 0, h - 1)
-    j0, i0 = np.floor(x).astype(int), np.floor(y).astype(int)
-    j1, i1 = np.minimum(j0 + 1, w - 1), np.minimum(i0 + 1, h - 1)
-    tx, ty = x - j0, y - i0
-    top = smooth[:, i0, j0] * (1 - tx) + smooth[:, i0, j1] * tx
-    bottom = smooth[:, i1, j0] * (1 - tx) + smooth[:, i1, j1] * tx
-    return (top * (1 - ty) + bottom * ty).T
+    return sample(smooth, safe, S, SAMPLING) * finite[:, None]
 
 
 def to_vehicle(local: np.ndarray, b: dict) -> np.ndarray:
