@@ -7,9 +7,6 @@
 //! quality; without it, one synthetic 1920×1280 frame. `cargo bench --bench decode`; results in
 //! BENCHMARKS.md.
 
-#[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
 use std::time::{Duration, Instant};
 
 use base64::Engine;

@@ -2,10 +2,6 @@
 //! points gathered, projected and reduced to N, K heatmaps smoothed and sampled.
 //! `cargo bench --bench pipeline`; results in BENCHMARKS.md.
 
-// The allocator of the `posefuse` binary, so that the numbers are the server's.
-#[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
 use criterion::{criterion_group, criterion_main, Criterion};
 use image::RgbImage;
 use posefuse::frame::{Box2d, Box3d, CameraCalibration};

@@ -5,10 +5,6 @@
 //! `POSEFUSE_BENCH_FRAME` a request file (e.g. a simulator fixture: a 1920×1280 JPEG and a full
 //! LiDAR sweep) whose first person is sent instead of the built-in 640×480 PNG frame.
 
-// The allocator of the `posefuse` binary, so that the numbers are the server's.
-#[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
 #[path = "../tests/server_support/mod.rs"]
 mod server_support;
 

@@ -6,10 +6,6 @@ use clap::{Parser, Subcommand};
 use cli::args::{BenchArgs, EvalArgs, HealthArgs, PredictArgs, ServeArgs, SimulateArgs};
 use cli::commands;
 
-// Why mimalloc, and how the server tunes it: cli/allocator.rs.
-#[global_allocator]
-static ALLOCATOR: mimalloc::MiMalloc = mimalloc::MiMalloc;
-
 /// Multi-modal (camera + LiDAR) 3D pedestrian pose estimation.
 #[derive(Parser)]
 #[command(name = "posefuse", version, about)]

@@ -29,10 +29,10 @@ ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
 # Oldest supported (Indexed Jobs' backoffLimitPerIndex is beta, on by default, since 1.29) and newest.
 K8S_VERSIONS = ["1.29.0", kubernetes_validate.utils.latest_version()]
-# Memory arithmetic (docs/DEPLOY.md, "Memory"). The resident size under load, measured: 625 MB peak
-# at 64 clients, release build, default flags, the default bundle 0.4.0 (BENCHMARKS.md, "The
-# default bundle 0.4.0").
-MEASURED_RESIDENT = 625_000_000
+# Memory arithmetic (docs/DEPLOY.md, "Memory"). The resident size under load, measured: 239 MB peak
+# at 64 clients, release build, default flags, the default bundle 0.4.0, the system allocator
+# (BENCHMARKS.md, "The system allocator against mimalloc").
+MEASURED_RESIDENT = 239_000_000
 # The largest camera image the fleet sends (Waymo's front camera), decoded as RGB8.
 CAMERA_PIXELS = 1920 * 1280
 MIB = 1024 * 1024

@@ -25,7 +25,6 @@ pub fn tokio_runtime() -> anyhow::Result<tokio::runtime::Runtime> {
 /// `posefuse serve`: SIGHUP reloads the bundle, SIGTERM or Ctrl-C drains; a completed drain
 /// exits 0.
 pub fn serve(a: ServeArgs) -> anyhow::Result<()> {
-    super::allocator::purge_freed_memory_at_once();
     let telemetry = super::telemetry::init(a.log_json, a.otlp_endpoint.as_deref())?;
     let config = a.server_config()?;
     tracing::info!(addr = %a.addr, ?config, otlp_endpoint = ?a.otlp_endpoint, "effective configuration");

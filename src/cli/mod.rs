@@ -1,6 +1,5 @@
 //! The `posefuse` command line: its flags ([`args`]) and what each subcommand runs ([`commands`]).
 
-pub mod allocator;
 pub mod args;
 pub mod commands;
 pub mod mcap;

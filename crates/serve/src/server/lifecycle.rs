@@ -1,7 +1,7 @@
 //! Drain support: the count of requests in flight, the signal that tells streams to end, and the
 //! process signals (SIGTERM/Ctrl-C drain, SIGHUP reloads).
 
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 
 use axum::extract::{Request, State};
@@ -10,14 +10,20 @@ use axum::response::Response;
 use futures::{Stream, StreamExt};
 use tokio_util::sync::CancellationToken;
 
-/// Requests whose response has not been produced yet (streams count until their headers go).
+/// Requests whose response has not been produced yet (streams count until their headers go), and
+/// how many have started since the server did.
 #[derive(Default)]
-pub struct InFlight(AtomicUsize);
+pub struct InFlight(AtomicUsize, AtomicU64);
 
 impl InFlight {
     /// Requests in flight now.
     pub fn get(&self) -> usize {
         self.0.load(Ordering::SeqCst)
+    }
+
+    /// Requests started since the server did.
+    pub fn started(&self) -> u64 {
+        self.1.load(Ordering::SeqCst)
     }
 }
 
@@ -32,6 +38,7 @@ impl Drop for Leave {
 
 /// Middleware counting requests in flight (the `posefuse_requests_in_flight` gauge).
 pub async fn count_in_flight(State(counter): State<Arc<InFlight>>, req: Request, next: Next) -> Response {
+    counter.1.fetch_add(1, Ordering::SeqCst);
     let n = counter.0.fetch_add(1, Ordering::SeqCst) + 1;
     metrics::gauge!("posefuse_requests_in_flight").set(n as f64);
     let _leave = Leave(counter);

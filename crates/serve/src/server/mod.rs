@@ -12,6 +12,7 @@ pub mod health;
 pub mod http;
 pub mod kserve;
 pub mod lifecycle;
+pub mod memory;
 pub mod metrics;
 pub mod reload;
 pub mod request_context;
@@ -270,6 +271,7 @@ impl App {
                 drain.cancel();
             }
         };
+        let trim = memory::trim_when_quiet(in_flight.clone());
         let addr = listener.local_addr().ok();
         let mut limits = self.conn.clone();
         if limits.max_connections == 0 {
@@ -290,6 +292,7 @@ impl App {
             tracing::info!("drained: every connection finished");
         }
         ready_watch.abort();
+        trim.abort();
         let runtime = state.predictor.runtime().clone();
         drop(state);
         drop(self);

@@ -1,0 +1,117 @@
+//! Memory handed back after load. The server allocates through the system allocator (glibc's
+//! malloc; docs/OPERATIONS.md, "Memory"). A burst leaves free chunks between live ones inside
+//! malloc's heaps, and those pages stay resident until `malloc_trim` returns them: once the
+//! server has served and then been quiet for a whole look, it trims, once per quiet spell, off
+//! the async threads. Under load it never trims (a trim takes every heap's lock in turn).
+
+use std::sync::Arc;
+use std::time::Duration;
+
+use super::lifecycle::InFlight;
+
+/// How often the server looks whether it has fallen quiet.
+pub const LOOK_EVERY: Duration = Duration::from_secs(1);
+
+/// What one look saw.
+#[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
+pub struct Look {
+    /// Requests started since the server did.
+    pub started: u64,
+    /// Requests in flight.
+    pub in_flight: usize,
+}
+
+/// Whether to trim at look `now`: nothing in flight, nothing started since the look before
+/// (`previous`), and something started since the last trim (`trimmed_at`, requests started then).
+pub fn quiet_after_work(previous: Look, now: Look, trimmed_at: u64) -> bool {
+    now.in_flight == 0 && now.started == previous.started && now.started != trimmed_at
+}
+
+/// Returns the free pages of malloc's heaps to the OS; whether any were returned.
+pub fn release_free_memory() -> bool {
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    {
+        // SAFETY: malloc_trim only walks malloc's own heaps under their locks.
+        unsafe { libc::malloc_trim(0) == 1 }
+    }
+    #[cfg(not(all(target_os = "linux", target_env = "gnu")))]
+    {
+        false
+    }
+}
+
+/// Looks every [`LOOK_EVERY`] and trims when [`quiet_after_work`] says so, until aborted.
+pub fn trim_when_quiet(in_flight: Arc<InFlight>) -> tokio::task::JoinHandle<()> {
+    tokio::spawn(async move {
+        let mut previous = Look::default();
+        let mut trimmed_at = 0;
+        loop {
+            tokio::time::sleep(LOOK_EVERY).await;
+            let now = Look { started: in_flight.started(), in_flight: in_flight.get() };
+            if quiet_after_work(previous, now, trimmed_at) {
+                trimmed_at = now.started;
+                let released = tokio::task::spawn_blocking(release_free_memory).await.unwrap_or(false);
+                tracing::debug!(released, "quiet after work: free heap pages returned to the OS");
+            }
+            previous = now;
+        }
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn look(started: u64, in_flight: usize) -> Look {
+        Look { started, in_flight }
+    }
+
+    #[test]
+    fn trims_once_per_quiet_spell_after_work_and_never_under_load() {
+        // a quiet look after work: trim
+        assert!(quiet_after_work(look(10, 0), look(10, 0), 0));
+        // already trimmed since: not again
+        assert!(!quiet_after_work(look(10, 0), look(10, 0), 10));
+        // a request still in flight, or one started since the look before: not yet
+        assert!(!quiet_after_work(look(10, 1), look(10, 1), 0));
+        assert!(!quiet_after_work(look(9, 0), look(10, 0), 0));
+        // nothing ever served: nothing to give back
+        assert!(!quiet_after_work(look(0, 0), look(0, 0), 0));
+    }
+
+    /// Resident set size of this process, bytes.
+    fn rss() -> u64 {
+        let statm = std::fs::read_to_string("/proc/self/statm").unwrap_or_default();
+        let pages: u64 = statm.split_whitespace().nth(1).and_then(|v| v.parse().ok()).unwrap_or(0);
+        pages * 4096
+    }
+
+    /// Test binaries allocate through the system allocator, as the server does. 256 MB in 64 KB
+    /// blocks (below malloc's mmap threshold, so inside its heap), each followed by a small block
+    /// that stays: freeing the large ones leaves holes the heap cannot shrink past, resident
+    /// until trimmed.
+    #[test]
+    #[cfg(all(target_os = "linux", target_env = "gnu"))]
+    fn freed_holes_in_the_heap_leave_the_process_when_trimmed() {
+        let worker = std::thread::spawn(|| {
+            let mut kept = Vec::new();
+            let mut large = Vec::new();
+            for i in 0..4096 {
+                large.push(vec![i as u8 | 1; 64 << 10]);
+                kept.push(vec![i as u8; 64]);
+            }
+            let peak = rss();
+            drop(std::hint::black_box(large));
+            let freed = rss();
+            let released = release_free_memory();
+            let trimmed = rss();
+            drop(std::hint::black_box(kept));
+            (peak, freed, released, trimmed)
+        });
+        let (peak, freed, released, trimmed) = worker.join().unwrap();
+        let mb = |b: u64| b as f64 / 1e6;
+        assert!(freed > peak.saturating_sub(50 << 20), "freeing alone kept the holes: {} → {} MB", mb(peak), mb(freed));
+        assert!(released, "malloc_trim returned nothing");
+        assert!(trimmed + (200 << 20) < freed, "the trim returned the holes: {} → {} MB", mb(freed), mb(trimmed));
+    }
+}
