@@ -51,6 +51,7 @@ pub fn trim_when_quiet(in_flight: Arc<InFlight>) -> tokio::task::JoinHandle<()> 
             if quiet_after_work(previous, now, trimmed_at) {
                 trimmed_at = now.started;
                 let released = tokio::task::spawn_blocking(release_free_memory).await.unwrap_or(false);
+                metrics::counter!("posefuse_memory_trims_total").increment(1);
                 tracing::debug!(released, "quiet after work: free heap pages returned to the OS");
             }
             previous = now;

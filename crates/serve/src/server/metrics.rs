@@ -61,6 +61,10 @@ fn describe() {
     );
     describe_counter!("posefuse_connections_evicted_total", "Idle connections closed to make room for new ones");
     describe_counter!("posefuse_connections_idle_closed_total", "Connections closed after the idle timeout");
+    describe_counter!(
+        "posefuse_memory_trims_total",
+        "Times the server, quiet after work, returned its heaps' free pages to the OS"
+    );
     describe_gauge!("posefuse_connections_open", "Connections open on the serving port");
     describe_gauge!("posefuse_requests_in_flight", "Requests being answered on the serving port");
     describe_gauge!("posefuse_frames_admitted", "Frames admitted and not yet answered");
@@ -91,6 +95,7 @@ fn describe() {
         "posefuse_connections_refused_total",
         "posefuse_connections_evicted_total",
         "posefuse_connections_idle_closed_total",
+        "posefuse_memory_trims_total",
     ] {
         metrics::counter!(name).increment(0);
     }
