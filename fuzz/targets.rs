@@ -24,7 +24,9 @@ pub fn frame_json(data: &[u8]) {
 }
 
 fn frame_checks(frame: Frame) {
-    if frame.validate().is_err() || posefuse::service::limits::check_declared_sizes(&frame).is_err() {
+    if frame.validate().is_err()
+        || posefuse::service::limits::FrameLimits::DEFAULT.check_declared_sizes(&frame).is_err()
+    {
         return;
     }
     let Ok(points) = frame.points.decode() else { return };

@@ -495,9 +495,11 @@ fn the_serve_process_reloads_on_sighup_and_exits_0_on_sigterm() {
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-async fn per_frame_limits_on_persons_and_points_are_flags() {
+async fn per_frame_limits_on_persons_points_and_image_size_are_flags() {
     let mut cfg = config();
-    cfg.frame_limits = posefuse::service::limits::FrameLimits { max_persons: 2, max_points: 400 };
+    // the test camera's own size is the largest image allowed
+    let max_image_pixels = (WIDTH * HEIGHT) as u64;
+    cfg.frame_limits = posefuse::service::limits::FrameLimits { max_persons: 2, max_points: 400, max_image_pixels };
     let s = start(cfg).await;
     // three_mode_frame: 3 persons, 553 points.
     let mut frame = three_mode_frame();
@@ -508,6 +510,11 @@ async fn per_frame_limits_on_persons_and_points_are_flags() {
     assert_eq!((status, r["error"]["field"].as_str()), (422, Some("points")), "{r}");
     let (status, r) = post(&s, "/v1/poses", &frame_json()).await;
     assert_eq!(status, 200, "{r}");
+    // one row more than allowed is refused for its declared size, before its image is read
+    let mut taller = frame_json();
+    taller["calibration"]["height"] = json!(HEIGHT + 1);
+    let (status, r) = post(&s, "/v1/poses", &taller).await;
+    assert_eq!((status, r["error"]["field"].as_str()), (422, Some("calibration.width/height")), "{r}");
     s.shutdown().await.unwrap();
 }
 

@@ -33,8 +33,8 @@ K8S_VERSIONS = ["1.29.0", kubernetes_validate.utils.latest_version()]
 # at 64 clients, release build, default flags, the default bundle 0.4.0, the system allocator
 # (BENCHMARKS.md, "The system allocator against mimalloc").
 MEASURED_RESIDENT = 239_000_000
-# The largest camera image the fleet sends (Waymo's front camera), decoded as RGB8.
-CAMERA_PIXELS = 1920 * 1280
+# Bytes per pixel of the largest decode: a 16-bit RGBA PNG (8) and its RGB8 copy (3), both alive.
+DECODE_BYTES_PER_PIXEL = 8 + 3
 MIB = 1024 * 1024
 
 KSERVE_CONTAINER = {
@@ -280,9 +280,11 @@ def worst_case_memory(container: dict) -> dict[str, float]:
     # a flat point array of one-digit numbers turns 2 bytes of text into a 4-byte float), and once
     # pre-processed, every person's crop until inference.
     per_frame = 3 * body + crops
-    # A decode permit: one decoded image at a time, the points copied twice (decoded, then as
-    # triples), the image or point bytes decoded from base64.
-    per_permit = CAMERA_PIXELS * 3 + 2 * points * 12 + 0.75 * body
+    # A decode permit: one decoded image at a time (its declared size, which the flag bounds), the
+    # points copied twice (decoded, then as triples), the image or point bytes decoded from base64.
+    image_pixels = int(env["POSEFUSE_MAX_IMAGE_PIXELS"])
+    assert image_pixels > 0, "the server refuses 0 at start"
+    per_permit = image_pixels * DECODE_BYTES_PER_PIXEL + 2 * points * 12 + 0.75 * body
     total = MEASURED_RESIDENT + (permits + waiting) * per_frame + permits * per_permit
     return {"frames": permits + waiting, "per_frame": per_frame, "per_permit": per_permit, "total": total}
 

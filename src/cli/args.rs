@@ -173,6 +173,16 @@ pub struct ServeArgs {
     /// LiDAR points per frame at most (422 beyond).
     #[arg(long, env = "POSEFUSE_MAX_POINTS", default_value_t = FrameLimits::DEFAULT.max_points)]
     pub max_points: usize,
+    /// Pixels of one camera image at most, as its calibration declares them (422 beyond; the
+    /// image must match its declared size). Images are decoded one at a time, so this bounds a
+    /// decode's memory: 3 bytes per pixel, more for a 16-bit PNG (docs/DEPLOY.md, "Memory").
+    #[arg(
+        long,
+        env = "POSEFUSE_MAX_IMAGE_PIXELS",
+        default_value_t = FrameLimits::DEFAULT.max_image_pixels,
+        value_parser = clap::value_parser!(u64).range(1..=posefuse::service::limits::MAX_IMAGE_PIXELS)
+    )]
+    pub max_image_pixels: u64,
     /// Serve administration (`POST /v1/models:reload`) without a token on this address, meant
     /// for loopback (e.g. 127.0.0.1:9090); off by default: the serving port refuses it (403).
     #[arg(long, env = "POSEFUSE_ADMIN_ADDR")]
@@ -223,7 +233,11 @@ impl ServeArgs {
             },
             decode_permits: self.decode_permits,
             admission_queue: self.admission_queue,
-            frame_limits: FrameLimits { max_persons: self.max_persons, max_points: self.max_points },
+            frame_limits: FrameLimits {
+                max_persons: self.max_persons,
+                max_points: self.max_points,
+                max_image_pixels: self.max_image_pixels,
+            },
             heading_model_dir: self.runtime.heading_model.clone(),
             heading_agree_deg: self.runtime.heading_agree_deg,
             refine: self.runtime.refine(),
@@ -409,6 +423,26 @@ mod tests {
         assert_eq!(cfg(&["x", "--precision", "int8"]).unwrap(), Some(Precision::Int8));
         assert_eq!(cfg(&["x", "--precision", "fp32"]).unwrap(), Some(Precision::Fp32));
         assert!(cfg(&["x", "--precision", "fp16"]).is_err());
+    }
+
+    #[derive(Parser)]
+    struct Serve {
+        #[command(flatten)]
+        serve: ServeArgs,
+    }
+
+    #[test]
+    fn the_frame_limit_flags_reach_the_server() {
+        let limits =
+            |args: &[&str]| Serve::try_parse_from(args).map(|a| a.serve.server_config().map(|c| c.frame_limits));
+        assert_eq!(limits(&["x"]).unwrap().unwrap(), FrameLimits::DEFAULT);
+        let given = ["x", "--max-persons", "3", "--max-points", "500", "--max-image-pixels", "2457600"];
+        let set = FrameLimits { max_persons: 3, max_points: 500, max_image_pixels: 2_457_600 };
+        assert_eq!(limits(&given).unwrap().unwrap(), set);
+        // no image at all, or more than the server can ever take, is refused at start
+        assert!(limits(&["x", "--max-image-pixels", "0"]).is_err());
+        let over = (posefuse::service::limits::MAX_IMAGE_PIXELS + 1).to_string();
+        assert!(limits(&["x", "--max-image-pixels", &over]).is_err());
     }
 
     #[derive(Parser)]

@@ -3,19 +3,20 @@
 
 use posefuse_core::error::{Error, Result};
 
-/// Largest image accepted, in pixels (the declared calibration size and the encoded header).
+/// Largest image accepted, in pixels (the declared calibration size and the encoded header): the
+/// most `--max-image-pixels` may allow.
 pub const MAX_IMAGE_PIXELS: u64 = 64 * 1024 * 1024;
 
-/// Checks the declared image size against the pixel limit.
-fn check_declared_size(width: u32, height: u32) -> Result<()> {
+/// Checks the declared image size against `max_pixels`.
+fn check_declared_size(width: u32, height: u32, max_pixels: u64) -> Result<()> {
     if width > i32::MAX as u32 || height > i32::MAX as u32 {
         return Err(Error::field("calibration.width/height", format!("{width}x{height} exceeds the int32 range")));
     }
     let pixels = width as u64 * height as u64;
-    if pixels > MAX_IMAGE_PIXELS {
+    if pixels > max_pixels {
         return Err(Error::field(
             "calibration.width/height",
-            format!("{width}x{height} is {pixels} pixels; at most {MAX_IMAGE_PIXELS}"),
+            format!("{width}x{height} is {pixels} pixels; at most {max_pixels}"),
         ));
     }
     Ok(())
@@ -30,33 +31,22 @@ pub const MAX_CAMERAS: usize = 8;
 /// the other, but their crops are cut and held together).
 pub const MAX_FRAME_PIXELS: u64 = MAX_IMAGE_PIXELS;
 
-/// Checks every camera's declared size, and their sum, before anything is decoded.
-pub fn check_declared_sizes(frame: &posefuse_core::frame::Frame) -> Result<()> {
-    let mut total = 0u64;
-    for (_, at, c) in frame.camera_calibrations() {
-        check_declared_size(c.width, c.height).map_err(|e| e.within(&at))?;
-        total += c.width as u64 * c.height as u64;
-    }
-    if total > MAX_FRAME_PIXELS {
-        return Err(Error::field(
-            "cameras",
-            format!("the cameras' images are {total} pixels together; at most {MAX_FRAME_PIXELS} per frame"),
-        ));
-    }
-    Ok(())
-}
-
-/// Per-frame limits on persons and LiDAR points (flags of `posefuse serve`). Each person scans
-/// every point of its frame, so their product bounds a frame's point work.
+/// Per-frame limits on persons, LiDAR points and image size (flags of `posefuse serve`). Each
+/// person scans every point of its frame, so their product bounds a frame's point work; an image
+/// is decoded one camera at a time, so `max_image_pixels` bounds the memory of a decode.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
 pub struct FrameLimits {
     pub max_persons: usize,
     pub max_points: usize,
+    /// Pixels of one camera image at most (its declared size; its header must match it).
+    pub max_image_pixels: u64,
 }
 
 impl FrameLimits {
-    /// 256 persons; 1,000,000 points (a 32 MiB body holds about 2 million in the base64 form).
-    pub const DEFAULT: FrameLimits = FrameLimits { max_persons: super::MAX_PERSONS, max_points: 1_000_000 };
+    /// 256 persons; 1,000,000 points (a 32 MiB body holds about 2 million in the base64 form);
+    /// images of up to [`MAX_IMAGE_PIXELS`].
+    pub const DEFAULT: FrameLimits =
+        FrameLimits { max_persons: super::MAX_PERSONS, max_points: 1_000_000, max_image_pixels: MAX_IMAGE_PIXELS };
 }
 
 impl Default for FrameLimits {
@@ -86,6 +76,22 @@ impl FrameLimits {
         };
         if points > self.max_points {
             return Err(Error::field("points", format!("{points} points; at most {} per frame", self.max_points)));
+        }
+        Ok(())
+    }
+
+    /// Checks every camera's declared size, and their sum, before anything is decoded.
+    pub fn check_declared_sizes(&self, frame: &posefuse_core::frame::Frame) -> Result<()> {
+        let mut total = 0u64;
+        for (_, at, c) in frame.camera_calibrations() {
+            check_declared_size(c.width, c.height, self.max_image_pixels).map_err(|e| e.within(&at))?;
+            total += c.width as u64 * c.height as u64;
+        }
+        if total > MAX_FRAME_PIXELS {
+            return Err(Error::field(
+                "cameras",
+                format!("the cameras' images are {total} pixels together; at most {MAX_FRAME_PIXELS} per frame"),
+            ));
         }
         Ok(())
     }
@@ -147,9 +153,12 @@ mod tests {
 
     #[test]
     fn declared_sizes_are_bounded() {
-        assert!(check_declared_size(1920, 1280).is_ok());
-        assert!(check_declared_size(13_000, 13_000).is_err());
-        assert!(check_declared_size(u32::MAX, 1).is_err());
+        assert!(check_declared_size(1920, 1280, MAX_IMAGE_PIXELS).is_ok());
+        assert!(check_declared_size(13_000, 13_000, MAX_IMAGE_PIXELS).is_err());
+        assert!(check_declared_size(u32::MAX, 1, MAX_IMAGE_PIXELS).is_err());
+        // a lower limit: the camera's own size passes, one pixel more does not
+        assert!(check_declared_size(1920, 1280, 1920 * 1280).is_ok());
+        assert!(check_declared_size(1921, 1280, 1920 * 1280).is_err());
     }
 
     fn frame_of_cameras(sizes: &[(u32, u32)]) -> posefuse_core::frame::Frame {
@@ -168,13 +177,18 @@ mod tests {
     #[test]
     fn several_cameras_share_one_pixel_limit_and_are_counted() {
         // 5 cameras of 4096x3072 (12.6 Mpx each) fit in 64 Mi pixels, 6 do not
-        assert!(check_declared_sizes(&frame_of_cameras(&[(4096, 3072); 5])).is_ok());
-        let e = check_declared_sizes(&frame_of_cameras(&[(4096, 3072); 6])).unwrap_err();
+        let limits = FrameLimits::DEFAULT;
+        assert!(limits.check_declared_sizes(&frame_of_cameras(&[(4096, 3072); 5])).is_ok());
+        let e = limits.check_declared_sizes(&frame_of_cameras(&[(4096, 3072); 6])).unwrap_err();
         assert_eq!(e.field_name(), Some("cameras"));
         // one camera over the single-image limit is named
-        let e = check_declared_sizes(&frame_of_cameras(&[(640, 480), (13_000, 13_000)])).unwrap_err();
+        let e = limits.check_declared_sizes(&frame_of_cameras(&[(640, 480), (13_000, 13_000)])).unwrap_err();
         assert_eq!(e.field_name(), Some("cameras[1].calibration.width/height"));
-        let limits = FrameLimits::DEFAULT;
+        // the flag's lower limit applies to each camera
+        let waymo = FrameLimits { max_image_pixels: 1920 * 1280, ..limits };
+        assert!(waymo.check_declared_sizes(&frame_of_cameras(&[(1920, 1280), (1920, 886)])).is_ok());
+        let e = waymo.check_declared_sizes(&frame_of_cameras(&[(1920, 1280), (1920, 1281)])).unwrap_err();
+        assert_eq!(e.field_name(), Some("cameras[1].calibration.width/height"));
         assert!(limits.check(&frame_of_cameras(&[(64, 48); MAX_CAMERAS])).is_ok());
         let e = limits.check(&frame_of_cameras(&[(64, 48); MAX_CAMERAS + 1])).unwrap_err();
         assert_eq!(e.field_name(), Some("cameras"));

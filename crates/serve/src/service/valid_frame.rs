@@ -10,7 +10,7 @@ use posefuse_core::frame::{Box3d, Frame, Person, RequestedMode};
 use posefuse_core::image_decode::RawImages;
 
 use super::cameras::FrameCameras;
-use super::limits::{check_declared_sizes, FrameLimits};
+use super::limits::FrameLimits;
 
 /// A frame that passed [`ValidFrame::new`]: its points decoded, its images moved out of it and
 /// opened only when a person uses them.
@@ -28,7 +28,7 @@ impl ValidFrame {
     pub fn new(mut frame: Frame, raw: Option<RawImages>, limits: &FrameLimits) -> Result<ValidFrame> {
         limits.check(&frame)?;
         frame.validate()?;
-        check_declared_sizes(&frame)?;
+        limits.check_declared_sizes(&frame)?;
         let cameras = FrameCameras::take(&mut frame, raw)?;
         let points = frame.points.decode()?;
         if points.is_empty() {
