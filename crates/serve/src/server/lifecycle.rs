@@ -13,17 +13,20 @@ use tokio_util::sync::CancellationToken;
 /// Requests whose response has not been produced yet (streams count until their headers go), and
 /// how many have started since the server did.
 #[derive(Default)]
-pub struct InFlight(AtomicUsize, AtomicU64);
+pub struct InFlight {
+    now: AtomicUsize,
+    started: AtomicU64,
+}
 
 impl InFlight {
     /// Requests in flight now.
     pub fn get(&self) -> usize {
-        self.0.load(Ordering::SeqCst)
+        self.now.load(Ordering::SeqCst)
     }
 
     /// Requests started since the server did.
     pub fn started(&self) -> u64 {
-        self.1.load(Ordering::SeqCst)
+        self.started.load(Ordering::SeqCst)
     }
 }
 
@@ -31,15 +34,15 @@ struct Leave(Arc<InFlight>);
 
 impl Drop for Leave {
     fn drop(&mut self) {
-        let n = self.0 .0.fetch_sub(1, Ordering::SeqCst) - 1;
+        let n = self.0.now.fetch_sub(1, Ordering::SeqCst) - 1;
         metrics::gauge!("posefuse_requests_in_flight").set(n as f64);
     }
 }
 
 /// Middleware counting requests in flight (the `posefuse_requests_in_flight` gauge).
 pub async fn count_in_flight(State(counter): State<Arc<InFlight>>, req: Request, next: Next) -> Response {
-    counter.1.fetch_add(1, Ordering::SeqCst);
-    let n = counter.0.fetch_add(1, Ordering::SeqCst) + 1;
+    counter.started.fetch_add(1, Ordering::SeqCst);
+    let n = counter.now.fetch_add(1, Ordering::SeqCst) + 1;
     metrics::gauge!("posefuse_requests_in_flight").set(n as f64);
     let _leave = Leave(counter);
     next.run(req).await

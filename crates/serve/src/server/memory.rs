@@ -2,7 +2,8 @@
 //! malloc; docs/OPERATIONS.md, "Memory"). A burst leaves free chunks between live ones inside
 //! malloc's heaps, and those pages stay resident until `malloc_trim` returns them: once the
 //! server has served and then been quiet for a whole look, it trims, once per quiet spell, off
-//! the async threads. Under load it never trims (a trim takes every heap's lock in turn).
+//! the async threads. Under load it never trims (a trim takes every heap's lock in turn). Any
+//! request counts as work, probes included: a trim with little to return costs little.
 
 use std::sync::Arc;
 use std::time::Duration;

@@ -179,6 +179,8 @@ mod tests {
         // 5 cameras of 4096x3072 (12.6 Mpx each) fit in 64 Mi pixels, 6 do not
         let limits = FrameLimits::DEFAULT;
         assert!(limits.check_declared_sizes(&frame_of_cameras(&[(4096, 3072); 5])).is_ok());
+        // exactly the frame's limit: 4 cameras of 4096x4096 (16 Mi pixels each)
+        assert!(limits.check_declared_sizes(&frame_of_cameras(&[(4096, 4096); 4])).is_ok());
         let e = limits.check_declared_sizes(&frame_of_cameras(&[(4096, 3072); 6])).unwrap_err();
         assert_eq!(e.field_name(), Some("cameras"));
         // one camera over the single-image limit is named
