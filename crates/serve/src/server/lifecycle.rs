@@ -1,7 +1,7 @@
 //! Drain support: the count of requests in flight, the signal that tells streams to end, and the
 //! process signals (SIGTERM/Ctrl-C drain, SIGHUP reloads).
 
-use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 
 use axum::extract::{Request, State};
@@ -10,23 +10,14 @@ use axum::response::Response;
 use futures::{Stream, StreamExt};
 use tokio_util::sync::CancellationToken;
 
-/// Requests whose response has not been produced yet (streams count until their headers go), and
-/// how many have started since the server did.
+/// Requests whose response has not been produced yet (streams count until their headers go).
 #[derive(Default)]
-pub struct InFlight {
-    now: AtomicUsize,
-    started: AtomicU64,
-}
+pub struct InFlight(AtomicUsize);
 
 impl InFlight {
     /// Requests in flight now.
     pub fn get(&self) -> usize {
-        self.now.load(Ordering::SeqCst)
-    }
-
-    /// Requests started since the server did.
-    pub fn started(&self) -> u64 {
-        self.started.load(Ordering::SeqCst)
+        self.0.load(Ordering::SeqCst)
     }
 }
 
@@ -34,15 +25,14 @@ struct Leave(Arc<InFlight>);
 
 impl Drop for Leave {
     fn drop(&mut self) {
-        let n = self.0.now.fetch_sub(1, Ordering::SeqCst) - 1;
+        let n = self.0 .0.fetch_sub(1, Ordering::SeqCst) - 1;
         metrics::gauge!("posefuse_requests_in_flight").set(n as f64);
     }
 }
 
 /// Middleware counting requests in flight (the `posefuse_requests_in_flight` gauge).
 pub async fn count_in_flight(State(counter): State<Arc<InFlight>>, req: Request, next: Next) -> Response {
-    counter.started.fetch_add(1, Ordering::SeqCst);
-    let n = counter.now.fetch_add(1, Ordering::SeqCst) + 1;
+    let n = counter.0.fetch_add(1, Ordering::SeqCst) + 1;
     metrics::gauge!("posefuse_requests_in_flight").set(n as f64);
     let _leave = Leave(counter);
     next.run(req).await

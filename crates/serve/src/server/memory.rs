@@ -1,14 +1,15 @@
 //! Memory handed back after load. The server allocates through the system allocator (glibc's
 //! malloc; docs/OPERATIONS.md, "Memory"). A burst leaves free chunks between live ones inside
 //! malloc's heaps, and those pages stay resident until `malloc_trim` returns them: once the
-//! server has served and then been quiet for a whole look, it trims, once per quiet spell, off
-//! the async threads. Under load it never trims (a trim takes every heap's lock in turn). Any
-//! request counts as work, probes included: a trim with little to return costs little.
+//! server has had frames to answer and then admitted none for a whole look, with none left in
+//! hand, it trims, once per quiet spell, off the async threads. Under load it never trims (a trim
+//! takes every heap's lock in turn), and probes, metrics and other requests that carry no frame
+//! neither count as work nor delay a trim.
 
 use std::sync::Arc;
 use std::time::Duration;
 
-use super::lifecycle::InFlight;
+use crate::service::admission::Admission;
 
 /// How often the server looks whether it has fallen quiet.
 pub const LOOK_EVERY: Duration = Duration::from_secs(1);
@@ -16,14 +17,14 @@ pub const LOOK_EVERY: Duration = Duration::from_secs(1);
 /// What one look saw.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Look {
-    /// Requests started since the server did.
+    /// Frames admitted since the server started.
     pub started: u64,
-    /// Requests in flight.
+    /// Frames admitted and not yet answered.
     pub in_flight: usize,
 }
 
-/// Whether to trim at look `now`: nothing in flight, nothing started since the look before
-/// (`previous`), and something started since the last trim (`trimmed_at`, requests started then).
+/// Whether to trim at look `now`: no frame in hand, none admitted since the look before
+/// (`previous`), and some admitted since the last trim (`trimmed_at`, frames admitted then).
 pub fn quiet_after_work(previous: Look, now: Look, trimmed_at: u64) -> bool {
     now.in_flight == 0 && now.started == previous.started && now.started != trimmed_at
 }
@@ -42,13 +43,13 @@ pub fn release_free_memory() -> bool {
 }
 
 /// Looks every [`LOOK_EVERY`] and trims when [`quiet_after_work`] says so, until aborted.
-pub fn trim_when_quiet(in_flight: Arc<InFlight>) -> tokio::task::JoinHandle<()> {
+pub fn trim_when_quiet(admission: Arc<Admission>) -> tokio::task::JoinHandle<()> {
     tokio::spawn(async move {
         let mut previous = Look::default();
         let mut trimmed_at = 0;
         loop {
             tokio::time::sleep(LOOK_EVERY).await;
-            let now = Look { started: in_flight.started(), in_flight: in_flight.get() };
+            let now = Look { started: admission.admitted_ever(), in_flight: admission.admitted() };
             if quiet_after_work(previous, now, trimmed_at) {
                 trimmed_at = now.started;
                 let released = tokio::task::spawn_blocking(release_free_memory).await.unwrap_or(false);
@@ -74,10 +75,10 @@ mod tests {
         assert!(quiet_after_work(look(10, 0), look(10, 0), 0));
         // already trimmed since: not again
         assert!(!quiet_after_work(look(10, 0), look(10, 0), 10));
-        // a request still in flight, or one started since the look before: not yet
+        // a frame still in hand, or one admitted since the look before: not yet
         assert!(!quiet_after_work(look(10, 1), look(10, 1), 0));
         assert!(!quiet_after_work(look(9, 0), look(10, 0), 0));
-        // nothing ever served: nothing to give back
+        // no frame ever admitted: nothing to give back
         assert!(!quiet_after_work(look(0, 0), look(0, 0), 0));
     }
 

@@ -271,7 +271,7 @@ impl App {
                 drain.cancel();
             }
         };
-        let trim = memory::trim_when_quiet(in_flight.clone());
+        let trim = memory::trim_when_quiet(state.predictor.admission().clone());
         let addr = listener.local_addr().ok();
         let mut limits = self.conn.clone();
         if limits.max_connections == 0 {

@@ -5,7 +5,7 @@
 //! cores), so concurrent requests do not all decode at once: CPU, threads and memory stay
 //! bounded at any concurrency.
 
-use std::sync::atomic::{AtomicUsize, Ordering};
+use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
@@ -19,6 +19,8 @@ pub struct Admission {
     waiting: AtomicUsize,
     max_waiting: usize,
     admitted: AtomicUsize,
+    /// Frames admitted since the gate was made.
+    ever: AtomicU64,
 }
 
 /// A frame's place in the server, from before its body is read to its response.
@@ -57,6 +59,7 @@ impl Admission {
             waiting: AtomicUsize::new(0),
             max_waiting,
             admitted: AtomicUsize::new(0),
+            ever: AtomicU64::new(0),
         })
     }
 
@@ -70,6 +73,7 @@ impl Admission {
         let cap = self.total.saturating_add(self.max_waiting);
         match self.admitted.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < cap).then_some(n + 1)) {
             Ok(n) => {
+                self.ever.fetch_add(1, Ordering::AcqRel);
                 metrics::gauge!("posefuse_frames_admitted").set((n + 1) as f64);
                 Ok(Ticket { admission: self.clone() })
             }
@@ -83,6 +87,11 @@ impl Admission {
     /// Frames admitted now.
     pub fn admitted(&self) -> usize {
         self.admitted.load(Ordering::Relaxed)
+    }
+
+    /// Frames admitted since the gate was made.
+    pub fn admitted_ever(&self) -> u64 {
+        self.ever.load(Ordering::Acquire)
     }
 
     /// Frames being pre-processed now.
