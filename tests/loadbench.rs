@@ -50,6 +50,7 @@ fn the_bench_loads_a_server_with_every_image_form() {
             assert!(s.answered > 0, "{what}: nothing answered");
             assert_eq!(s.statuses.keys().collect::<Vec<_>>(), ["200"], "{what}: {:?}", s.statuses);
             assert_eq!(s.statuses["200"], s.answered, "{what}");
+            assert_eq!(s.clients_answered, s.clients, "{what}: every client was answered");
             // Clients cycle through the frames: every answer holds one frame's persons.
             let (lo, hi) = (persons_per_frame.iter().min().unwrap(), persons_per_frame.iter().max().unwrap());
             assert!(s.persons >= lo * s.answered && s.persons <= hi * s.answered, "{what}: {} persons", s.persons);

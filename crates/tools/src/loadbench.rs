@@ -232,6 +232,8 @@ struct Step {
     persons: usize,
     statuses: std::collections::BTreeMap<String, usize>,
     peak_rss_kb: Option<u64>,
+    /// Clients with at least one request answered.
+    clients_answered: usize,
 }
 
 fn percentile(sorted: &[Duration], p: f64) -> Duration {
@@ -360,9 +362,12 @@ async fn run_step(
         persons: 0,
         statuses: Default::default(),
         peak_rss_kb: None,
+        clients_answered: 0,
     };
     for t in tasks {
-        for (d, status, persons) in t.await.context("a bench client")? {
+        let out = t.await.context("a bench client")?;
+        step.clients_answered += usize::from(out.iter().any(|(_, status, _)| status == "200"));
+        for (d, status, persons) in out {
             if status == "200" {
                 step.latencies.push(d);
                 step.persons += persons;
@@ -550,6 +555,10 @@ pub struct StepReport {
     pub p99: Duration,
     /// Every status seen, with its count (`"200"`, `"429"`, transport errors by name).
     pub statuses: std::collections::BTreeMap<String, usize>,
+    /// Clients that had at least one request answered: fewer than `clients` means some were
+    /// refused every time they asked (each waits its `Retry-After`, while the others' next
+    /// requests take the places their answers free).
+    pub clients_answered: usize,
 }
 
 /// What `posefuse bench` measured: the raw ONNX Runtime reference (unless `no_raw`) and each step.
@@ -606,8 +615,10 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
         raw_persons_per_s: raw.as_ref().map(|r| r.persons_per_s),
         steps: Vec::new(),
     };
-    println!("| image | clients | frames/s | persons/s | p50 ms | p99 ms | p50 / raw | persons/s / raw | statuses | peak RSS MB |");
-    println!("|---|---|---|---|---|---|---|---|---|---|");
+    println!(
+        "| image | clients | clients answered | frames/s | persons/s | p50 ms | p99 ms | p50 / raw | persons/s / raw | statuses | peak RSS MB |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
     let model = Bundle::load(&args.model_dir)?.manifest.name.clone();
     for &form in &args.load.image {
         let mut objects = shared_memory::Objects::default();
@@ -639,8 +650,9 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
             let statuses: Vec<String> = s.statuses.iter().map(|(k, v)| format!("{k}: {v}")).collect();
             let ratio = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.2}"));
             println!(
-                "| {form:?} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {} | {} | {} | {} |",
+                "| {form:?} | {} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {} | {} | {} | {} |",
                 s.clients,
+                s.clients_answered,
                 s.latencies.len() as f64 / secs,
                 s.persons as f64 / secs,
                 ms(p50),
@@ -659,6 +671,7 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
                 p50,
                 p99,
                 statuses: s.statuses.clone(),
+                clients_answered: s.clients_answered,
             });
         }
         if form == ImageForm::RgbShm {
