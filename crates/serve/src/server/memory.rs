@@ -18,15 +18,15 @@ pub const LOOK_EVERY: Duration = Duration::from_secs(1);
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default)]
 pub struct Look {
     /// Frames admitted since the server started.
-    pub started: u64,
+    pub admitted_ever: u64,
     /// Frames admitted and not yet answered.
-    pub in_flight: usize,
+    pub in_hand: usize,
 }
 
 /// Whether to trim at look `now`: no frame in hand, none admitted since the look before
 /// (`previous`), and some admitted since the last trim (`trimmed_at`, frames admitted then).
 pub fn quiet_after_work(previous: Look, now: Look, trimmed_at: u64) -> bool {
-    now.in_flight == 0 && now.started == previous.started && now.started != trimmed_at
+    now.in_hand == 0 && now.admitted_ever == previous.admitted_ever && now.admitted_ever != trimmed_at
 }
 
 /// Returns the free pages of malloc's heaps to the OS; whether any were returned.
@@ -49,9 +49,9 @@ pub fn trim_when_quiet(admission: Arc<Admission>) -> tokio::task::JoinHandle<()>
         let mut trimmed_at = 0;
         loop {
             tokio::time::sleep(LOOK_EVERY).await;
-            let now = Look { started: admission.admitted_ever(), in_flight: admission.admitted() };
+            let now = Look { admitted_ever: admission.admitted_ever(), in_hand: admission.admitted() };
             if quiet_after_work(previous, now, trimmed_at) {
-                trimmed_at = now.started;
+                trimmed_at = now.admitted_ever;
                 let released = tokio::task::spawn_blocking(release_free_memory).await.unwrap_or(false);
                 metrics::counter!("posefuse_memory_trims_total").increment(1);
                 tracing::debug!(released, "quiet after work: free heap pages returned to the OS");
@@ -65,8 +65,8 @@ pub fn trim_when_quiet(admission: Arc<Admission>) -> tokio::task::JoinHandle<()>
 mod tests {
     use super::*;
 
-    fn look(started: u64, in_flight: usize) -> Look {
-        Look { started, in_flight }
+    fn look(admitted_ever: u64, in_hand: usize) -> Look {
+        Look { admitted_ever, in_hand }
     }
 
     #[test]
