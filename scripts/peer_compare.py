@@ -92,8 +92,9 @@ def tree(pid: int) -> list[int]:
 
 async def load(server: Server, frames: list[bytes], persons: list[int], clients: int, duration: float) -> dict:
     """`clients` keep-alive clients, each sending the fixtures in turn for `duration` seconds and
-    honouring Retry-After on a 429."""
+    honouring Retry-After on a 429; `clients_answered` counts those that had any answer."""
     done = {"frames": 0, "persons": 0, "refused": 0, "failed": 0}
+    answered: set[int] = set()
     latency: list[float] = []
     peak = {"VmRSS": 0}
     stop_at = time.time() + duration
@@ -110,6 +111,7 @@ async def load(server: Server, frames: list[bytes], persons: list[int], clients:
                 latency.append(time.perf_counter() - t)
                 done["frames"] += 1
                 done["persons"] += persons[k % len(frames)]
+                answered.add(i)
                 k += clients
             elif status == 429:
                 done["refused"] += 1
@@ -126,6 +128,7 @@ async def load(server: Server, frames: list[bytes], persons: list[int], clients:
     took = time.time() - t0
     return {
         "clients": clients,
+        "clients_answered": len(answered),
         "frames_per_s": round(done["frames"] / took, 1),
         "persons_per_s": round(done["persons"] / took, 1),
         "p50_ms": round(percentile(latency, 0.5) * 1e3, 2),

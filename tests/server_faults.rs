@@ -730,3 +730,68 @@ async fn every_transport_refuses_a_frame_before_reading_it_when_the_server_is_fu
     assert_ne!(e.code(), tonic::Code::ResourceExhausted, "{e:?}");
     s.shutdown().await.unwrap();
 }
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn with_a_line_a_full_server_makes_frames_wait_their_turn_before_reading_them() {
+    use posefuse::server::grpc::proto::posefuse_client::PosefuseClient;
+    use posefuse::service::admission::Line;
+    let mut cfg = config();
+    cfg.admission_line = Line { wait: Duration::from_secs(20), max: 2 };
+    let (s, pause, first) = full_server(cfg).await;
+    let admission = s.predictor.admission().clone();
+    let until_in_line = |n: usize| {
+        let admission = admission.clone();
+        async move {
+            let t0 = Instant::now();
+            while admission.in_line() != n {
+                assert!(t0.elapsed() < Duration::from_secs(5), "never {n} in line");
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+        }
+    };
+    let waiter = {
+        let (url, body) = (s.url("/v1/poses"), frame_json());
+        tokio::spawn(async move {
+            let r = reqwest::Client::new().post(url).json(&body).send().await.unwrap();
+            (r.status().as_u16(), r.json::<Value>().await.unwrap())
+        })
+    };
+    until_in_line(1).await;
+    let grpc_waiter = {
+        let mut native = PosefuseClient::connect(s.url("")).await.unwrap();
+        tokio::spawn(async move { native.predict(posefuse::server::grpc::proto::PredictRequest::default()).await })
+    };
+    until_in_line(2).await;
+    // The line is full: a third frame is refused at once, unread, as without a line.
+    let t0 = Instant::now();
+    let r = reqwest::Client::new().post(s.url("/v1/poses")).body("{not json").send().await.unwrap();
+    assert_eq!(r.status().as_u16(), 429);
+    assert!(t0.elapsed() < Duration::from_secs(2), "the refusal waited {:?}", t0.elapsed());
+    drop(pause);
+    assert_eq!(first.await.unwrap().unwrap(), 200);
+    // Both waiters were read only once admitted: the frame is answered, the empty gRPC message
+    // gets the error of what it is (not RESOURCE_EXHAUSTED).
+    let (status, body) = waiter.await.unwrap();
+    assert_eq!(status, 200, "{body}");
+    let e = grpc_waiter.await.unwrap().unwrap_err();
+    assert_eq!(e.code(), tonic::Code::InvalidArgument, "{e:?}");
+    assert_eq!(admission.in_line(), 0);
+    s.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_wait_in_the_line_that_ends_is_a_429() {
+    use posefuse::service::admission::Line;
+    let mut cfg = config();
+    cfg.admission_line = Line { wait: Duration::from_millis(300), max: 4 };
+    let (s, pause, first) = full_server(cfg).await;
+    let t0 = Instant::now();
+    let r = reqwest::Client::new().post(s.url("/v1/poses")).json(&frame_json()).send().await.unwrap();
+    assert_eq!(r.status().as_u16(), 429);
+    assert_eq!(r.headers().get("retry-after").map(|v| v.to_str().unwrap().to_string()), Some("1".into()));
+    assert!(t0.elapsed() >= Duration::from_millis(300), "refused after {:?}", t0.elapsed());
+    assert_eq!(s.predictor.admission().in_line(), 0);
+    drop(pause);
+    assert_eq!(first.await.unwrap().unwrap(), 200);
+    s.shutdown().await.unwrap();
+}

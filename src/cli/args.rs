@@ -12,7 +12,7 @@ use posefuse::pipeline::PointFrame;
 use posefuse::runtime::{Device, Precision, RuntimeConfig};
 use posefuse::server::conn::ConnLimits;
 use posefuse::server::ServerConfig;
-use posefuse::service::admission::Sizing;
+use posefuse::service::admission::{Line, Sizing};
 use posefuse::service::heading_stage::{Refine, AGREE_DEG, SETTLE_DEG};
 use posefuse::service::limits::FrameLimits;
 use posefuse::sim::realism::Effect;
@@ -167,6 +167,14 @@ pub struct ServeArgs {
     /// Requests that may wait for a decode permit; beyond, 429 at once (0: 8 per permit).
     #[arg(long, env = "POSEFUSE_ADMISSION_QUEUE", default_value_t = 0)]
     pub admission_queue: usize,
+    /// Milliseconds a frame that finds the server full may wait for a place, before its body is
+    /// read, in order of arrival; 429 when the wait is over (0: 429 at once). Makes admission
+    /// fair to clients that wait `Retry-After` (docs/OPERATIONS.md, "Admission and overload").
+    #[arg(long, env = "POSEFUSE_ADMISSION_WAIT_MS", default_value_t = 0)]
+    pub admission_wait_ms: u64,
+    /// Frames that may wait at once for a place when `--admission-wait-ms` is set; beyond, 429 at once.
+    #[arg(long, env = "POSEFUSE_ADMISSION_WAITERS", default_value_t = Line::MAX_WAITERS)]
+    pub admission_waiters: usize,
     /// Persons per frame at most (422 beyond).
     #[arg(long, env = "POSEFUSE_MAX_PERSONS", default_value_t = FrameLimits::DEFAULT.max_persons)]
     pub max_persons: usize,
@@ -233,6 +241,7 @@ impl ServeArgs {
             },
             decode_permits: self.decode_permits,
             admission_queue: self.admission_queue,
+            admission_line: Line { wait: Duration::from_millis(self.admission_wait_ms), max: self.admission_waiters },
             frame_limits: FrameLimits {
                 max_persons: self.max_persons,
                 max_points: self.max_points,
@@ -443,6 +452,16 @@ mod tests {
         assert!(limits(&["x", "--max-image-pixels", "0"]).is_err());
         let over = (posefuse::service::limits::MAX_IMAGE_PIXELS + 1).to_string();
         assert!(limits(&["x", "--max-image-pixels", &over]).is_err());
+    }
+
+    #[test]
+    fn the_admission_line_flags_reach_the_server() {
+        let line =
+            |args: &[&str]| Serve::try_parse_from(args).map(|a| a.serve.server_config().map(|c| c.admission_line));
+        let default = line(&["x"]).unwrap().unwrap();
+        assert_eq!(default, Line { wait: Duration::ZERO, max: Line::MAX_WAITERS }, "off by default");
+        let set = line(&["x", "--admission-wait-ms", "2000", "--admission-waiters", "64"]).unwrap().unwrap();
+        assert_eq!(set, Line { wait: Duration::from_secs(2), max: 64 });
     }
 
     #[derive(Parser)]

@@ -62,17 +62,17 @@ pub fn frame_route(method: &Method, path: &str, grpc: bool) -> Option<FrameRoute
     }
 }
 
-/// Admits `req` when it carries one frame, the ticket in its extensions; other requests pass
-/// untouched. `Err`: the refusal to send instead (its body, if any, read and dropped beside it,
-/// up to `body_limit`).
-pub fn admit(
+/// Admits `req` when it carries one frame, the ticket in its extensions, after its wait in the
+/// admission line when there is one; other requests pass untouched. `Err`: the refusal to send
+/// instead (its body, if any, read and dropped beside it, up to `body_limit`).
+pub async fn admit(
     admission: &Arc<Admission>,
     mut req: Request,
     grpc: bool,
     body_limit: usize,
 ) -> Result<Request, Box<Response>> {
     let Some(route) = frame_route(req.method(), req.uri().path(), grpc) else { return Ok(req) };
-    match admission.admit() {
+    match admission.admit_in_line().await {
         Ok(ticket) => {
             req.extensions_mut().insert(Arc::new(ticket));
             Ok(req)

@@ -70,6 +70,7 @@ fn describe() {
     describe_gauge!("posefuse_frames_admitted", "Frames admitted and not yet answered");
     describe_gauge!("posefuse_preprocess_in_flight", "Frames being decoded and pre-processed");
     describe_gauge!("posefuse_admission_waiting", "Admitted frames waiting for a pre-processing permit");
+    describe_gauge!("posefuse_admission_line", "Frames waiting for admission, their bodies not yet read");
     describe_gauge!("posefuse_queue_depth", "Jobs in the inference queue");
     describe_gauge!("posefuse_build_info", "1 for the running build and serving bundle (labels), 0 once replaced");
     describe_histogram!(

@@ -53,6 +53,8 @@ pub struct ServerConfig {
     pub decode_permits: usize,
     /// Requests that may wait for a decode permit before 429.
     pub admission_queue: usize,
+    /// The waiting line before admission (off: a frame that finds the server full gets 429 at once).
+    pub admission_line: admission::Line,
     /// Persons and points per frame.
     pub frame_limits: FrameLimits,
     /// A bundle that needs no heading, asked first for each person's facing (docs/BUNDLE.md,
@@ -97,6 +99,7 @@ impl ServerConfig {
             conn: conn::ConnLimits::default(),
             decode_permits: 2,
             admission_queue: 64,
+            admission_line: admission::Line::OFF,
             frame_limits: FrameLimits::default(),
             heading_model_dir: None,
             heading_agree_deg: crate::service::heading_stage::AGREE_DEG,
@@ -143,7 +146,7 @@ impl App {
     /// Validates the bundle, builds the sessions and starts warming up (blocking).
     pub fn start(config: &ServerConfig) -> Result<App> {
         let runtime = Runtime::load(&config.model_dir, &config.runtime)?;
-        let admission = Admission::new(config.decode_permits, config.admission_queue);
+        let admission = Admission::with_line(config.decode_permits, config.admission_queue, config.admission_line);
         let mut predictor =
             Predictor::with_admission(runtime, admission).with_limits(config.frame_limits).with_refine(config.refine);
         if let Some(dir) = &config.heading_model_dir {
@@ -222,9 +225,9 @@ impl App {
             .fallback_service(tower::service_fn(move |req: Request| {
                 let (h, g) = (http_router.clone(), grpc_router.clone());
                 let grpc = is_grpc(&req);
-                let admitted = early_admission::admit(&admission, req, grpc, body_limit);
+                let admission = admission.clone();
                 async move {
-                    let req = match admitted {
+                    let req = match early_admission::admit(&admission, req, grpc, body_limit).await {
                         Ok(req) => req,
                         Err(refusal) => return Ok(*refusal),
                     };
@@ -352,6 +355,8 @@ pub async fn serve_with_signals(mut config: ServerConfig, addr: SocketAddr) -> R
         batch_wait_us = config.runtime.batch_wait.as_micros() as u64,
         decode_permits = config.decode_permits,
         admission_queue = config.admission_queue,
+        admission_wait_ms = config.admission_line.wait.as_millis() as u64,
+        admission_waiters = config.admission_line.max,
         device = %config.runtime.device,
         jpeg_simd = posefuse_core::image_decode::jpeg_simd(),
         "sizing"

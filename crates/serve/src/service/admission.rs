@@ -4,20 +4,51 @@
 //! decode and pre-processing then start only with one of a few permits (about the number of
 //! cores), so concurrent requests do not all decode at once: CPU, threads and memory stay
 //! bounded at any concurrency.
+//!
+//! A refusal holds no place, so under a closed loop of clients that send their next frame as
+//! soon as an answer comes, the answered clients keep the places and the refused ones may be
+//! refused every time they come back. The optional waiting line ([`Line`], `--admission-wait-ms`)
+//! makes admission fair: a frame that finds the server full waits, before its body is read, for
+//! a place, in order of arrival, and is refused only when the line is full or its wait is over
+//! (docs/OPERATIONS.md, "Admission and overload").
 
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::Arc;
+use std::time::Duration;
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
 
 use posefuse_core::error::{Error, Result};
+
+/// The waiting line in front of admission: how long a frame that finds the server full may wait
+/// for a place (zero: refused at once), and how many may wait at once.
+#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+pub struct Line {
+    pub wait: Duration,
+    pub max: usize,
+}
+
+impl Line {
+    /// No line: a frame that finds the server full is refused at once.
+    pub const OFF: Line = Line { wait: Duration::ZERO, max: 0 };
+    /// Default for `--admission-waiters`.
+    pub const MAX_WAITERS: usize = 256;
+
+    fn is_on(&self) -> bool {
+        !self.wait.is_zero() && self.max > 0
+    }
+}
 
 /// The gate in front of pre-processing.
 pub struct Admission {
     permits: Arc<Semaphore>,
     total: usize,
     waiting: AtomicUsize,
-    max_waiting: usize,
+    /// One per frame in the server (`total + max_waiting`). Tokio's semaphore hands a freed
+    /// place to the longest waiter first, so no one overtakes the line.
+    places: Arc<Semaphore>,
+    line: Line,
+    in_line: AtomicUsize,
     admitted: AtomicUsize,
     /// Frames admitted since the gate was made.
     ever: AtomicU64,
@@ -26,6 +57,8 @@ pub struct Admission {
 /// A frame's place in the server, from before its body is read to its response.
 pub struct Ticket {
     admission: Arc<Admission>,
+    /// Dropped after [`Ticket::drop`] has counted the frame out.
+    _place: OwnedSemaphorePermit,
 }
 
 impl Drop for Ticket {
@@ -50,14 +83,23 @@ impl Drop for Permit {
 }
 
 impl Admission {
-    /// `permits` frames pre-processed at once (at least 1), `max_waiting` more may wait.
+    /// `permits` frames pre-processed at once (at least 1), `max_waiting` more may wait; no
+    /// waiting line before admission.
     pub fn new(permits: usize, max_waiting: usize) -> Arc<Admission> {
-        let permits = permits.max(1);
+        Admission::with_line(permits, max_waiting, Line::OFF)
+    }
+
+    /// As [`Admission::new`], with `line` in front of [`Admission::admit_in_line`].
+    pub fn with_line(permits: usize, max_waiting: usize, line: Line) -> Arc<Admission> {
+        let permits = permits.clamp(1, Semaphore::MAX_PERMITS);
+        let places = permits.saturating_add(max_waiting).min(Semaphore::MAX_PERMITS);
         Arc::new(Admission {
             permits: Arc::new(Semaphore::new(permits)),
             total: permits,
             waiting: AtomicUsize::new(0),
-            max_waiting,
+            places: Arc::new(Semaphore::new(places)),
+            line,
+            in_line: AtomicUsize::new(0),
             admitted: AtomicUsize::new(0),
             ever: AtomicU64::new(0),
         })
@@ -68,20 +110,60 @@ impl Admission {
         Admission::new(Semaphore::MAX_PERMITS, usize::MAX / 2)
     }
 
-    /// Admits one frame, or refuses it at once when `permits + max_waiting` frames are in.
+    /// Admits one frame, or refuses it at once when `permits + max_waiting` frames are in (or
+    /// frames wait in the line for a place).
     pub fn admit(self: &Arc<Self>) -> Result<Ticket> {
-        let cap = self.total.saturating_add(self.max_waiting);
-        match self.admitted.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < cap).then_some(n + 1)) {
-            Ok(n) => {
-                self.ever.fetch_add(1, Ordering::AcqRel);
-                metrics::gauge!("posefuse_frames_admitted").set((n + 1) as f64);
-                Ok(Ticket { admission: self.clone() })
-            }
-            Err(_) => {
-                metrics::counter!("posefuse_admission_refused_total").increment(1);
-                Err(Error::Overloaded)
+        match self.places.clone().try_acquire_owned() {
+            Ok(place) => Ok(self.ticket(place)),
+            Err(_) => Err(self.refuse()),
+        }
+    }
+
+    /// Admits one frame, waiting in the line for a place when the server is full and the line
+    /// is on and not full; refused when it is off or full, or when the wait is over. Dropping
+    /// the future leaves the line.
+    pub async fn admit_in_line(self: &Arc<Self>) -> Result<Ticket> {
+        if let Ok(place) = self.places.clone().try_acquire_owned() {
+            return Ok(self.ticket(place));
+        }
+        let (max, wait) = (self.line.max, self.line.wait);
+        if !self.line.is_on()
+            || self.in_line.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < max).then_some(n + 1)).is_err()
+        {
+            return Err(self.refuse());
+        }
+        struct Leave<'a>(&'a Admission);
+        impl Drop for Leave<'_> {
+            fn drop(&mut self) {
+                let n = self.0.in_line.fetch_sub(1, Ordering::AcqRel) - 1;
+                metrics::gauge!("posefuse_admission_line").set(n as f64);
             }
         }
+        metrics::gauge!("posefuse_admission_line").set(self.in_line() as f64);
+        let leave = Leave(self);
+        let place = tokio::time::timeout(wait, self.places.clone().acquire_owned()).await;
+        drop(leave);
+        match place {
+            Ok(Ok(place)) => Ok(self.ticket(place)),
+            _ => Err(self.refuse()),
+        }
+    }
+
+    fn ticket(self: &Arc<Self>, place: OwnedSemaphorePermit) -> Ticket {
+        let n = self.admitted.fetch_add(1, Ordering::AcqRel) + 1;
+        self.ever.fetch_add(1, Ordering::AcqRel);
+        metrics::gauge!("posefuse_frames_admitted").set(n as f64);
+        Ticket { admission: self.clone(), _place: place }
+    }
+
+    fn refuse(&self) -> Error {
+        metrics::counter!("posefuse_admission_refused_total").increment(1);
+        Error::Overloaded
+    }
+
+    /// Frames waiting in the line for a place now (their bodies not read).
+    pub fn in_line(&self) -> usize {
+        self.in_line.load(Ordering::Relaxed)
     }
 
     /// Frames admitted now.
@@ -213,6 +295,76 @@ mod tests {
         assert_eq!(a.waiting(), 0);
         drop(t2);
         assert_eq!(a.admitted(), 1);
+    }
+
+    async fn until(what: impl Fn() -> bool) {
+        let t = std::time::Instant::now();
+        while !what() {
+            assert!(t.elapsed() < Duration::from_secs(5), "never happened");
+            tokio::time::sleep(Duration::from_millis(1)).await;
+        }
+    }
+
+    #[tokio::test]
+    async fn the_line_admits_in_order_of_arrival_and_nobody_overtakes_it() {
+        use futures::FutureExt;
+        let a = Admission::with_line(1, 0, Line { wait: Duration::from_secs(10), max: 2 });
+        let held = a.admit().unwrap();
+        let in_line = |a: &Arc<Admission>| {
+            let a = a.clone();
+            tokio::spawn(async move { a.admit_in_line().await })
+        };
+        let first = in_line(&a);
+        until(|| a.in_line() == 1).await;
+        let second = in_line(&a);
+        until(|| a.in_line() == 2).await;
+        // the line is full: refused at once, and a frame that may not wait is refused too
+        assert!(matches!(a.admit_in_line().now_or_never(), Some(Err(Error::Overloaded))));
+        assert!(matches!(a.admit(), Err(Error::Overloaded)));
+        drop(held);
+        let first = first.await.unwrap().unwrap();
+        assert_eq!((a.in_line(), a.admitted()), (1, 1));
+        // a place freed while someone waits is theirs, not a newcomer's
+        drop(first);
+        until(|| a.in_line() == 0).await;
+        assert!(matches!(a.admit(), Err(Error::Overloaded)));
+        let second = second.await.unwrap().unwrap();
+        assert_eq!(a.admitted(), 1);
+        drop(second);
+        assert!(a.admit().is_ok());
+        assert_eq!(a.admitted_ever(), 4);
+    }
+
+    #[tokio::test]
+    async fn a_wait_that_ends_is_a_refusal_and_leaves_no_trace() {
+        use futures::FutureExt;
+        let a = Admission::with_line(1, 1, Line { wait: Duration::from_millis(30), max: 4 });
+        let (t1, _t2) = (a.admit().unwrap(), a.admit().unwrap());
+        let t = std::time::Instant::now();
+        assert!(matches!(a.admit_in_line().await, Err(Error::Overloaded)));
+        assert!(t.elapsed() >= Duration::from_millis(30));
+        assert_eq!(a.in_line(), 0);
+        // leaving the line early (the caller went away) frees its place in it as well
+        let mut left = Box::pin(a.admit_in_line());
+        assert!((&mut left).now_or_never().is_none());
+        assert_eq!(a.in_line(), 1);
+        drop(left);
+        assert_eq!(a.in_line(), 0);
+        drop(t1);
+        let _t3 = a.admit_in_line().now_or_never().unwrap().unwrap();
+        assert_eq!(a.admitted(), 2);
+    }
+
+    #[tokio::test]
+    async fn without_a_line_a_full_server_refuses_at_once() {
+        use futures::FutureExt;
+        for line in [Line::OFF, Line { wait: Duration::from_secs(1), max: 0 }, Line { wait: Duration::ZERO, max: 8 }] {
+            let a = Admission::with_line(1, 0, line);
+            let held = a.admit_in_line().now_or_never().unwrap().unwrap();
+            assert!(matches!(a.admit_in_line().now_or_never(), Some(Err(Error::Overloaded))), "{line:?}");
+            assert_eq!(a.in_line(), 0);
+            drop(held);
+        }
     }
 
     #[test]
