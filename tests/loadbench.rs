@@ -80,3 +80,39 @@ fn the_bench_loads_a_server_with_every_image_form() {
     assert_eq!(left, 0);
     rt.block_on(server.shutdown()).unwrap();
 }
+
+#[test]
+fn with_the_waiting_line_every_closed_loop_client_of_a_full_server_is_answered() {
+    let data = tempfile::tempdir().unwrap();
+    std::fs::create_dir_all(data.path().join("requests")).unwrap();
+    std::fs::write(data.path().join("requests/frames.json"), serde_json::to_vec(&[fusion_frame()]).unwrap()).unwrap();
+    let rt = tokio::runtime::Builder::new_multi_thread().worker_threads(2).enable_all().build().unwrap();
+    // One place for six clients: five always wait, so without the line they would be refused.
+    let mut cfg = config();
+    (cfg.decode_permits, cfg.admission_queue) = (1, 0);
+    cfg.admission_line = posefuse::service::admission::Line { wait: Duration::from_secs(20), max: 8 };
+    let server = rt.block_on(start(cfg));
+    let load = LoadOptions {
+        url: Some(server.url("")),
+        server_pid: Some(std::process::id()),
+        data: data.path().to_path_buf(),
+        concurrency: vec![6],
+        duration: 1.0,
+        image: vec![ImageForm::AsIs],
+        protocol: Protocol::Http,
+        frames: 1,
+        timeout: 30.0,
+        no_raw: true,
+    };
+    let report = run_bench(BenchOptions {
+        load,
+        model_dir: model_dir(),
+        runtime: RuntimeConfig::DEFAULT,
+        serve_args: Vec::new(),
+    })
+    .unwrap();
+    let s = &report.steps[0];
+    assert_eq!(s.statuses.keys().collect::<Vec<_>>(), ["200"], "{:?}", s.statuses);
+    assert_eq!(s.clients_answered, 6, "{s:?}");
+    rt.block_on(server.shutdown()).unwrap();
+}

@@ -419,6 +419,7 @@ async fn metrics_show_admission_and_in_flight_gauges() {
         "posefuse_requests_in_flight",
         "posefuse_preprocess_in_flight",
         "posefuse_admission_waiting",
+        "posefuse_admission_line",
         "posefuse_queue_depth",
         "posefuse_connections_open",
     ] {
@@ -736,7 +737,7 @@ async fn with_a_line_a_full_server_makes_frames_wait_their_turn_before_reading_t
     use posefuse::server::grpc::proto::posefuse_client::PosefuseClient;
     use posefuse::service::admission::Line;
     let mut cfg = config();
-    cfg.admission_line = Line { wait: Duration::from_secs(20), max: 2 };
+    cfg.admission_line = Line { wait: Duration::from_secs(20), max: 3 };
     let (s, pause, first) = full_server(cfg).await;
     let admission = s.predictor.admission().clone();
     let until_in_line = |n: usize| {
@@ -762,19 +763,35 @@ async fn with_a_line_a_full_server_makes_frames_wait_their_turn_before_reading_t
         tokio::spawn(async move { native.predict(posefuse::server::grpc::proto::PredictRequest::default()).await })
     };
     until_in_line(2).await;
-    // The line is full: a third frame is refused at once, unread, as without a line.
+    // A gRPC caller that gives up while it waits (its stream reset) leaves the line at once.
+    let gone = {
+        let mut native = PosefuseClient::connect(s.url("")).await.unwrap();
+        tokio::spawn(async move { native.predict(posefuse::server::grpc::proto::PredictRequest::default()).await })
+    };
+    until_in_line(3).await;
+    gone.abort();
+    until_in_line(2).await;
+    // A third waiter fills the line: a fourth frame is refused at once, unread, as without a line.
+    let third = {
+        let (url, body) = (s.url("/v1/poses"), frame_json());
+        tokio::spawn(
+            async move { reqwest::Client::new().post(url).json(&body).send().await.map(|r| r.status().as_u16()) },
+        )
+    };
+    until_in_line(3).await;
     let t0 = Instant::now();
     let r = reqwest::Client::new().post(s.url("/v1/poses")).body("{not json").send().await.unwrap();
     assert_eq!(r.status().as_u16(), 429);
     assert!(t0.elapsed() < Duration::from_secs(2), "the refusal waited {:?}", t0.elapsed());
     drop(pause);
     assert_eq!(first.await.unwrap().unwrap(), 200);
-    // Both waiters were read only once admitted: the frame is answered, the empty gRPC message
+    // The waiters were read only once admitted: the frames are answered, the empty gRPC message
     // gets the error of what it is (not RESOURCE_EXHAUSTED).
     let (status, body) = waiter.await.unwrap();
     assert_eq!(status, 200, "{body}");
     let e = grpc_waiter.await.unwrap().unwrap_err();
     assert_eq!(e.code(), tonic::Code::InvalidArgument, "{e:?}");
+    assert_eq!(third.await.unwrap().unwrap(), 200);
     assert_eq!(admission.in_line(), 0);
     s.shutdown().await.unwrap();
 }

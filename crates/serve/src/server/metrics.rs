@@ -101,6 +101,8 @@ fn describe() {
         metrics::counter!(name).increment(0);
     }
     metrics::counter!("posefuse_frames_total", "outcome" => "ok").increment(0);
+    // read beside `posefuse_admission_refused_total`, so present before anyone waits
+    metrics::gauge!("posefuse_admission_line").set(0.0);
     for kind in crate::runtime::ModelKind::ALL {
         let _ = metrics::histogram!("posefuse_queue_wait_seconds", "model" => kind.key());
     }

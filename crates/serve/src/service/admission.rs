@@ -33,10 +33,6 @@ impl Line {
     pub const OFF: Line = Line { wait: Duration::ZERO, max: 0 };
     /// Default for `--admission-waiters`.
     pub const MAX_WAITERS: usize = 256;
-
-    fn is_on(&self) -> bool {
-        !self.wait.is_zero() && self.max > 0
-    }
 }
 
 /// The gate in front of pre-processing.
@@ -127,7 +123,7 @@ impl Admission {
             return Ok(self.ticket(place));
         }
         let (max, wait) = (self.line.max, self.line.wait);
-        if !self.line.is_on()
+        if wait.is_zero()
             || self.in_line.fetch_update(Ordering::AcqRel, Ordering::Acquire, |n| (n < max).then_some(n + 1)).is_err()
         {
             return Err(self.refuse());
@@ -135,8 +131,8 @@ impl Admission {
         struct Leave<'a>(&'a Admission);
         impl Drop for Leave<'_> {
             fn drop(&mut self) {
-                let n = self.0.in_line.fetch_sub(1, Ordering::AcqRel) - 1;
-                metrics::gauge!("posefuse_admission_line").set(n as f64);
+                self.0.in_line.fetch_sub(1, Ordering::AcqRel);
+                metrics::gauge!("posefuse_admission_line").set(self.0.in_line() as f64);
             }
         }
         metrics::gauge!("posefuse_admission_line").set(self.in_line() as f64);
@@ -150,9 +146,9 @@ impl Admission {
     }
 
     fn ticket(self: &Arc<Self>, place: OwnedSemaphorePermit) -> Ticket {
-        let n = self.admitted.fetch_add(1, Ordering::AcqRel) + 1;
+        self.admitted.fetch_add(1, Ordering::AcqRel);
         self.ever.fetch_add(1, Ordering::AcqRel);
-        metrics::gauge!("posefuse_frames_admitted").set(n as f64);
+        metrics::gauge!("posefuse_frames_admitted").set(self.admitted() as f64);
         Ticket { admission: self.clone(), _place: place }
     }
 
