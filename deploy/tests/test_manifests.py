@@ -510,7 +510,7 @@ def test_the_worst_case_the_admission_flags_allow_fits_the_memory_limit(kind):
 
 
 def test_kserve_concurrency_keeps_bodies_within_the_arithmetic():
-    """The v2 routes read a body before admitting its frame: the queue-proxy's concurrency bounds them."""
+    """The queue-proxy lets no more requests in than the server admits frames (the rest wait in it)."""
     runtime = one("ServingRuntime")["spec"]["containers"][0]
     predictor = one("InferenceService")["spec"]["predictor"]
     assert 0 < predictor["containerConcurrency"] <= worst_case_memory(runtime)["frames"]
