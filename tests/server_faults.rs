@@ -732,13 +732,20 @@ async fn every_transport_refuses_a_frame_before_reading_it_when_the_server_is_fu
     s.shutdown().await.unwrap();
 }
 
+/// [`full_server`] with a waiting line of `max` frames, each waiting at most `wait`.
+async fn full_server_with_line(
+    wait: Duration,
+    max: usize,
+) -> (TestServer, posefuse::runtime::PauseGuard, tokio::task::JoinHandle<reqwest::Result<u16>>) {
+    let mut cfg = config();
+    cfg.admission_line = posefuse::service::admission::Line { wait, max };
+    full_server(cfg).await
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn with_a_line_a_full_server_makes_frames_wait_their_turn_before_reading_them() {
     use posefuse::server::grpc::proto::posefuse_client::PosefuseClient;
-    use posefuse::service::admission::Line;
-    let mut cfg = config();
-    cfg.admission_line = Line { wait: Duration::from_secs(20), max: 3 };
-    let (s, pause, first) = full_server(cfg).await;
+    let (s, pause, first) = full_server_with_line(Duration::from_secs(20), 3).await;
     let admission = s.predictor.admission().clone();
     let until_in_line = |n: usize| {
         let admission = admission.clone();
@@ -798,10 +805,7 @@ async fn with_a_line_a_full_server_makes_frames_wait_their_turn_before_reading_t
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_wait_in_the_line_that_ends_is_a_429() {
-    use posefuse::service::admission::Line;
-    let mut cfg = config();
-    cfg.admission_line = Line { wait: Duration::from_millis(300), max: 4 };
-    let (s, pause, first) = full_server(cfg).await;
+    let (s, pause, first) = full_server_with_line(Duration::from_millis(300), 4).await;
     let t0 = Instant::now();
     let r = reqwest::Client::new().post(s.url("/v1/poses")).json(&frame_json()).send().await.unwrap();
     assert_eq!(r.status().as_u16(), 429);
