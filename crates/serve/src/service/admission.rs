@@ -17,6 +17,7 @@ use std::sync::Arc;
 use std::time::Duration;
 
 use tokio::sync::{OwnedSemaphorePermit, Semaphore};
+use tracing::Instrument;
 
 use posefuse_core::error::{Error, Result};
 
@@ -137,7 +138,10 @@ impl Admission {
         }
         metrics::gauge!("posefuse_admission_line").set(self.in_line() as f64);
         let leave = Leave(self);
-        let place = tokio::time::timeout(wait, self.places.clone().acquire_owned()).await;
+        // A span only for frames that wait, so that a trace shows the wait and the way in costs nothing.
+        let place = tokio::time::timeout(wait, self.places.clone().acquire_owned())
+            .instrument(tracing::info_span!("admission_line"))
+            .await;
         drop(leave);
         match place {
             Ok(Ok(place)) => Ok(self.ticket(place)),
@@ -349,6 +353,33 @@ mod tests {
         drop(t1);
         let _t3 = a.admit_in_line().now_or_never().unwrap().unwrap();
         assert_eq!(a.admitted(), 2);
+    }
+
+    /// The names of the spans made while it is set (this thread's default subscriber).
+    struct SpanNames(Arc<std::sync::Mutex<Vec<&'static str>>>);
+
+    impl<S: tracing::Subscriber> tracing_subscriber::Layer<S> for SpanNames {
+        fn on_new_span(
+            &self,
+            attrs: &tracing::span::Attributes<'_>,
+            _: &tracing::span::Id,
+            _: tracing_subscriber::layer::Context<'_, S>,
+        ) {
+            self.0.lock().unwrap().push(attrs.metadata().name());
+        }
+    }
+
+    #[tokio::test]
+    async fn only_a_frame_that_waits_gets_a_span_for_its_wait() {
+        use tracing_subscriber::layer::SubscriberExt;
+        let names = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let _default = tracing::subscriber::set_default(tracing_subscriber::registry().with(SpanNames(names.clone())));
+        let a = Admission::with_line(1, 0, Line { wait: Duration::from_millis(10), max: 1 });
+        let held = a.admit_in_line().await.unwrap();
+        assert!(names.lock().unwrap().is_empty(), "the way in: {:?}", names.lock().unwrap());
+        assert!(matches!(a.admit_in_line().await, Err(Error::Overloaded)));
+        assert_eq!(*names.lock().unwrap(), ["admission_line"]);
+        drop(held);
     }
 
     #[tokio::test]
