@@ -44,9 +44,10 @@ pub struct Admission {
     /// One per frame in the server (`total + max_waiting`). Tokio's semaphore hands a freed
     /// place to the longest waiter first, so no one overtakes the line.
     places: Arc<Semaphore>,
+    /// The places there are: those not available are the frames admitted.
+    all_places: usize,
     line: Line,
     in_line: AtomicUsize,
-    admitted: AtomicUsize,
     /// Frames admitted since the gate was made.
     ever: AtomicU64,
 }
@@ -54,14 +55,14 @@ pub struct Admission {
 /// A frame's place in the server, from before its body is read to its response.
 pub struct Ticket {
     admission: Arc<Admission>,
-    /// Dropped after [`Ticket::drop`] has counted the frame out.
-    _place: OwnedSemaphorePermit,
+    /// `None` once [`Ticket::drop`] has given it back.
+    place: Option<OwnedSemaphorePermit>,
 }
 
 impl Drop for Ticket {
     fn drop(&mut self) {
-        let n = self.admission.admitted.fetch_sub(1, Ordering::AcqRel) - 1;
-        metrics::gauge!("posefuse_frames_admitted").set(n as f64);
+        drop(self.place.take());
+        metrics::gauge!("posefuse_frames_admitted").set(self.admission.admitted() as f64);
     }
 }
 
@@ -95,9 +96,9 @@ impl Admission {
             total: permits,
             waiting: AtomicUsize::new(0),
             places: Arc::new(Semaphore::new(places)),
+            all_places: places,
             line,
             in_line: AtomicUsize::new(0),
-            admitted: AtomicUsize::new(0),
             ever: AtomicU64::new(0),
         })
     }
@@ -150,10 +151,9 @@ impl Admission {
     }
 
     fn ticket(self: &Arc<Self>, place: OwnedSemaphorePermit) -> Ticket {
-        self.admitted.fetch_add(1, Ordering::AcqRel);
         self.ever.fetch_add(1, Ordering::AcqRel);
         metrics::gauge!("posefuse_frames_admitted").set(self.admitted() as f64);
-        Ticket { admission: self.clone(), _place: place }
+        Ticket { admission: self.clone(), place: Some(place) }
     }
 
     fn refuse(&self) -> Error {
@@ -168,7 +168,7 @@ impl Admission {
 
     /// Frames admitted now.
     pub fn admitted(&self) -> usize {
-        self.admitted.load(Ordering::Relaxed)
+        self.all_places - self.places.available_permits()
     }
 
     /// Frames admitted since the gate was made.
