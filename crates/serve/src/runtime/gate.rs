@@ -17,7 +17,8 @@ pub fn hold_warm_up(hold: bool) {
     START_CLOSED.store(hold, Ordering::SeqCst);
 }
 
-/// Whether workers may take jobs (and, when held, warm up).
+/// Whether workers may take jobs (and, when held, warm up). Without the hooks it is empty.
+#[cfg_attr(not(feature = "test-hooks"), derive(Default))]
 pub struct Gate {
     #[cfg(feature = "test-hooks")]
     paused: Mutex<bool>,
@@ -25,14 +26,10 @@ pub struct Gate {
     resumed: Condvar,
 }
 
+#[cfg(feature = "test-hooks")]
 impl Default for Gate {
     fn default() -> Gate {
-        Gate {
-            #[cfg(feature = "test-hooks")]
-            paused: Mutex::new(START_CLOSED.load(Ordering::SeqCst)),
-            #[cfg(feature = "test-hooks")]
-            resumed: Condvar::new(),
-        }
+        Gate { paused: Mutex::new(START_CLOSED.load(Ordering::SeqCst)), resumed: Condvar::new() }
     }
 }
 
