@@ -42,6 +42,10 @@ fn the_bench_loads_a_server_with_every_image_form() {
         let report = run_bench(args.clone()).unwrap();
         assert!(report.raw_frame_p50.is_some_and(|p| p > Duration::ZERO), "{report:?}");
         assert!(report.raw_persons_per_s.is_some_and(|p| p > 0.0), "{report:?}");
+        // Both frames have fusion persons: the p50 is taken over three rounds of them at least,
+        // and over a step's duration of inference (shorter than the 3 s cap here).
+        assert!(report.raw_frames_timed >= 3 * frames.len(), "{report:?}");
+        assert!(report.raw_timed >= Duration::from_secs_f64(0.3), "{report:?}");
         let steps: Vec<(ImageForm, usize)> = report.steps.iter().map(|s| (s.form, s.clients)).collect();
         let want: Vec<(ImageForm, usize)> = forms.iter().flat_map(|&f| [(f, 1), (f, 3)]).collect();
         assert_eq!(steps, want, "{protocol:?}: one step per form and concurrency, in order");

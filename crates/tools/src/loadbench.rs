@@ -385,9 +385,18 @@ async fn run_step(
 struct Raw {
     /// Per frame: camera + point fusion on the frame's persons as one batch.
     frame_p50: Duration,
+    /// Frames the p50 is taken over, and their inference time.
+    frames_timed: usize,
+    timed: Duration,
     /// Persons per second, batches of `max_batch` on `workers` threads.
     persons_per_s: f64,
 }
+
+/// Most inference time the raw per-frame p50 is taken over (a step's duration when shorter), and
+/// the fewest and the most rounds of the frames.
+const RAW_FRAME_SECS: f64 = 3.0;
+const RAW_FRAME_MIN_ROUNDS: usize = 3;
+const RAW_FRAME_MAX_ROUNDS: usize = 1000;
 
 /// One person's camera input `[3, S, S]` and point-fusion input `[N, 3 + K]`.
 type PersonInputs = (Vec<f32>, Vec<f32>);
@@ -427,9 +436,14 @@ fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> posefuse_data::error::R
         let fus: Vec<f32> = persons.iter().flat_map(|p| p.1.iter().copied()).collect();
         (cam, fus)
     };
-    // per frame, a few rounds
+    // Per frame: one round to warm up, then rounds until RAW_FRAME_SECS have been measured (three
+    // rounds, a few hundred milliseconds, swung the p50 by 15 % from run to run).
     let mut per_frame = Vec::new();
-    for round in 0..4 {
+    let (mut measured, enough) = (Duration::ZERO, Duration::from_secs_f64(args.load.duration.min(RAW_FRAME_SECS)));
+    for round in 0..=RAW_FRAME_MAX_ROUNDS {
+        if round > RAW_FRAME_MIN_ROUNDS && measured >= enough {
+            break;
+        }
         for persons in &inputs {
             if persons.is_empty() {
                 continue;
@@ -440,7 +454,9 @@ fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> posefuse_data::error::R
             models.run(ModelKind::Camera, refs.len(), &cam)?;
             models.run(ModelKind::PointFusion, refs.len(), &fus)?;
             if round > 0 {
-                per_frame.push(t.elapsed());
+                let took = t.elapsed();
+                per_frame.push(took);
+                measured += took;
             }
         }
     }
@@ -479,7 +495,7 @@ fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> posefuse_data::error::R
         t.join().map_err(|_| invalid!("raw ONNX Runtime thread panicked"))??;
     }
     let persons_per_s = done.load(Ordering::Relaxed) as f64 / started.elapsed().as_secs_f64();
-    Ok(Raw { frame_p50: percentile(&per_frame, 0.5), persons_per_s })
+    Ok(Raw { frame_p50: percentile(&per_frame, 0.5), frames_timed: per_frame.len(), timed: measured, persons_per_s })
 }
 
 /// A `posefuse serve` child on a free loopback port.
@@ -565,6 +581,9 @@ pub struct StepReport {
 #[derive(Debug, Clone)]
 pub struct BenchReport {
     pub raw_frame_p50: Option<Duration>,
+    /// Frames the raw p50 is taken over, and their inference time.
+    pub raw_frames_timed: usize,
+    pub raw_timed: Duration,
     pub raw_persons_per_s: Option<f64>,
     pub steps: Vec<StepReport>,
 }
@@ -598,8 +617,9 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
     let raw = if args.load.no_raw { None } else { Some(raw_ceiling(&args, &frames)?) };
     if let Some(raw) = &raw {
         println!(
-            "raw ONNX Runtime (camera + point fusion): per frame p50 {:.3} ms | ceiling {:.0} persons/s",
+            "raw ONNX Runtime (camera + point fusion): per frame p50 {:.3} ms ({} frames timed) | ceiling {:.0} persons/s",
             ms(raw.frame_p50),
+            raw.frames_timed,
             raw.persons_per_s
         );
     }
@@ -612,6 +632,8 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
     println!();
     let mut report = BenchReport {
         raw_frame_p50: raw.as_ref().map(|r| r.frame_p50),
+        raw_frames_timed: raw.as_ref().map_or(0, |r| r.frames_timed),
+        raw_timed: raw.as_ref().map_or(Duration::ZERO, |r| r.timed),
         raw_persons_per_s: raw.as_ref().map(|r| r.persons_per_s),
         steps: Vec::new(),
     };
