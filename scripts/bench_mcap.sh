@@ -14,7 +14,7 @@ export RUST_LOG="${RUST_LOG:-warn}"
 mkdir -p "$DIR"
 
 if [ ! -d "$DIR/waymo" ]; then
-  "$BIN" waymo simulate --out "$DIR/waymo" --segments 1 --frames "$FRAMES" --seed 5
+  "$BIN" waymo simulate --out "$DIR/waymo" --segments 1 --frames "$FRAMES" --seed 5 --profile clean
 fi
 "$BIN" mcap record --dataset "$DIR/waymo" --out "$DIR/drive.mcap" > /dev/null
 "$BIN" mcap record --dataset "$DIR/waymo" --out "$DIR/short.mcap" --frames $((FRAMES / 4)) > /dev/null

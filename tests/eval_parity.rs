@@ -124,7 +124,9 @@ fn setup() -> Setup {
     let dir = tmp.path().to_path_buf();
     let data = dir.join("sim");
     let bin = env!("CARGO_BIN_EXE_posefuse");
-    run(Command::new(bin).args(["simulate", "--count", "40", "--seed", "77", "--image-size", &s, "--out"]).arg(&data));
+    run(Command::new(bin)
+        .args(["simulate", "--count", "40", "--seed", "77", "--image-size", &s, "--profile", "clean", "--out"])
+        .arg(&data));
 
     let requests = data.join("requests");
     let mut files: Vec<String> = std::fs::read_dir(&requests)

@@ -164,7 +164,19 @@ fn cli_eval_with_wrong_headings_reports_the_swaps_they_cause() {
     let data = d.path().join("sim");
     let data = data.to_str().unwrap();
     let s = bundle_image_size().to_string();
-    let out = posefuse(&["simulate", "--count", "12", "--seed", "5", "--image-size", &s, "--out", data]);
+    let out = posefuse(&[
+        "simulate",
+        "--count",
+        "12",
+        "--seed",
+        "5",
+        "--image-size",
+        &s,
+        "--profile",
+        "clean",
+        "--out",
+        data,
+    ]);
     assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
     let eval = |extra: &[&str]| -> Value {
         let out = posefuse(&[&["eval", "--data", data, "--json", "--mode", "lidar"], extra].concat());

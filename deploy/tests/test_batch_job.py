@@ -151,7 +151,8 @@ def test_the_jobs_pods_score_every_segment_once(tmp_path):
     data = tmp_path / "claim"
     sim = run([binary, "waymo", "simulate", "--out", str(data / "in"), "--segments", str(count + 1), "--frames", "2",
                "--top-rows", "32", "--top-cols", "600", "--short-rows", "16", "--short-cols", "60",
-               "--image-scale", "0.25", "--keypoint-fraction", "1", "--jobs", "2", "--seed", "4"])
+               "--image-scale", "0.25", "--keypoint-fraction", "1", "--jobs", "2", "--seed", "4",
+               "--profile", "clean"])
     assert sim.returncode == 0, sim.stderr
     segments = sorted(p.stem for p in (data / "in" / "lidar").glob("*.parquet"))
     assert len(segments) == count + 1

@@ -68,7 +68,7 @@ def frame(tmp_path_factory) -> dict:
     out = tmp_path_factory.mktemp("sim")
     subprocess.run(
         [str(BINARY), "simulate", "--count", "6", "--seed", "3", "--image-size", "64", "--requests", "3",
-         "--out", str(out)],
+         "--profile", "clean", "--out", str(out)],
         check=True, capture_output=True, timeout=300,
     )
     frames = [json.loads(p.read_text()) for p in sorted((out / "requests").glob("*.json"))]

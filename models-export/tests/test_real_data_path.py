@@ -30,7 +30,7 @@ BINARY = live_server.binary()
 
 TINY_SEGMENT = (
     "--segments 1 --frames 6 --top-rows 48 --top-cols 1200 --short-rows 24 --short-cols 80 "
-    "--image-scale 0.25 --keypoint-fraction 1"
+    "--image-scale 0.25 --keypoint-fraction 1 --profile clean"
 ).split()
 FEW_STEPS = ["--set", "camera.steps=4", "--set", "point.steps=4", "--set", "point.warmup_steps=2"]
 

@@ -340,10 +340,11 @@ pub struct SimulateArgs {
     /// Most in-box points kept per sample in `points_xyz`/`points_uv` (P in docs/DATA.md).
     #[arg(long, default_value_t = 1024)]
     pub points_cap: usize,
-    /// `clean` (tight clothing, empty hands, clean returns), `street` (loose clothing, things in
-    /// hand, mixed-pixel LiDAR returns at silhouette edges) or `street-hard` (street, arms against
-    /// the torso, dark-surface dropouts, 3D label noise).
-    #[arg(long, value_enum, default_value_t = Profile::Clean)]
+    /// `street-hard` (the default bundle's training data: loose clothing, things in hand,
+    /// mixed-pixel LiDAR returns at silhouette edges, arms against the torso, dark-surface
+    /// dropouts, 3D label noise), `street` (the first two causes only) or `clean` (tight clothing,
+    /// empty hands, clean returns: for regression against the earliest results).
+    #[arg(long, value_enum, default_value_t = Profile::StreetHard)]
     pub profile: Profile,
     /// Realism effects to add to the profile's, comma-separated (docs/DATA.md, "Realism against
     /// Waymo's anchors"), to measure one cause at a time.
@@ -415,6 +416,27 @@ mod tests {
         let plain = Runtime::try_parse_from(["x"]).unwrap().runtime.heading_flags();
         assert!(!plain.iter().any(|f| f == "--heading-model"), "{plain:?}");
         assert!(plain.contains(&"--heading-refine=0".to_string()), "{plain:?}");
+    }
+
+    #[test]
+    fn both_simulators_render_the_default_bundles_profile_unless_told_otherwise() {
+        #[derive(Parser)]
+        struct Sim {
+            #[command(flatten)]
+            sim: SimulateArgs,
+        }
+        #[derive(Parser)]
+        struct WaymoSim {
+            #[command(flatten)]
+            sim: super::super::waymo::WaymoSimulateArgs,
+        }
+        let profile = |more: &[&str]| Sim::try_parse_from(["x", "--out", "d"].iter().chain(more)).unwrap().sim.profile;
+        assert_eq!(profile(&[]), Profile::StreetHard);
+        assert_eq!(profile(&["--profile", "clean"]), Profile::Clean);
+        let waymo =
+            |more: &[&str]| WaymoSim::try_parse_from(["x", "--out", "d"].iter().chain(more)).unwrap().sim.profile;
+        assert_eq!(waymo(&[]), Profile::StreetHard);
+        assert_eq!(waymo(&["--profile", "street"]), Profile::Street);
     }
 
     #[test]

@@ -108,7 +108,8 @@ pub struct WaymoSimulateArgs {
     /// float for double and double for float).
     #[arg(long)]
     pub alt_types: bool,
-    #[arg(long, value_enum, default_value_t = Profile::Clean)]
+    /// The pedestrians' realism profile, as `posefuse simulate --profile`.
+    #[arg(long, value_enum, default_value_t = Profile::StreetHard)]
     pub profile: Profile,
     /// Frames per row group of every component.
     #[arg(long, default_value_t = 4)]

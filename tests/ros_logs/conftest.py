@@ -45,6 +45,8 @@ def drive(tmp_path_factory) -> Path:
         "5",
         "--seed",
         "11",
+        "--profile",
+        "clean",
         "--image-scale",
         "0.25",
         "--top-cols",
