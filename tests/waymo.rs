@@ -17,6 +17,8 @@ use posefuse::waymo::sim::{rig, segment_name, simulate, simulate_frame, WaymoSim
 
 const FRAMES: usize = 3;
 
+/// The segment of every test; the alternate-types one renders `posefuse waymo simulate`'s default
+/// profile (street-hard), so that its effects are converted as well.
 fn options(out: &Path, alt: bool) -> WaymoSimOptions {
     WaymoSimOptions {
         out: out.to_path_buf(),
@@ -29,7 +31,7 @@ fn options(out: &Path, alt: bool) -> WaymoSimOptions {
         speed_mps: 15.0,
         keypoint_fraction: 1.0,
         alt_types: alt,
-        profile: Profile::Clean,
+        profile: if alt { Profile::StreetHard } else { Profile::Clean },
         frames_per_row_group: 2,
         jobs: Some(2),
     }
