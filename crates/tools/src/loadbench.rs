@@ -398,6 +398,12 @@ const RAW_FRAME_SECS: f64 = 3.0;
 const RAW_FRAME_MIN_ROUNDS: usize = 3;
 const RAW_FRAME_MAX_ROUNDS: usize = 1000;
 
+/// Whether the raw per-frame rounds may stop before `round` (round 0 warms up, untimed): after
+/// [`RAW_FRAME_MIN_ROUNDS`] timed rounds, once `measured` reaches `enough`.
+fn timed_enough(round: usize, measured: Duration, enough: Duration) -> bool {
+    round > RAW_FRAME_MIN_ROUNDS && measured >= enough
+}
+
 /// One person's camera input `[3, S, S]` and point-fusion input `[N, 3 + K]`.
 type PersonInputs = (Vec<f32>, Vec<f32>);
 
@@ -441,7 +447,7 @@ fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> posefuse_data::error::R
     let mut per_frame = Vec::new();
     let (mut measured, enough) = (Duration::ZERO, Duration::from_secs_f64(args.load.duration.min(RAW_FRAME_SECS)));
     for round in 0..=RAW_FRAME_MAX_ROUNDS {
-        if round > RAW_FRAME_MIN_ROUNDS && measured >= enough {
+        if timed_enough(round, measured, enough) {
             break;
         }
         for persons in &inputs {
@@ -710,6 +716,20 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn the_raw_reference_times_three_rounds_then_until_it_has_enough() {
+        let (short, enough) = (Duration::from_millis(10), Duration::from_secs(1));
+        // the warm-up and three timed rounds always run, however much they measured
+        for round in 0..=RAW_FRAME_MIN_ROUNDS {
+            assert!(!timed_enough(round, enough * 2, enough), "round {round}");
+        }
+        // then rounds go on until `enough` is measured, and no further
+        assert!(!timed_enough(RAW_FRAME_MIN_ROUNDS + 1, short, enough));
+        assert!(!timed_enough(40, enough - short, enough));
+        assert!(timed_enough(RAW_FRAME_MIN_ROUNDS + 1, enough, enough));
+        assert!(timed_enough(40, enough * 2, enough));
+    }
 
     #[test]
     fn a_refused_client_waits_the_servers_retry_after() {
