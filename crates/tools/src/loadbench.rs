@@ -398,10 +398,10 @@ const RAW_FRAME_SECS: f64 = 3.0;
 const RAW_FRAME_MIN_ROUNDS: usize = 3;
 const RAW_FRAME_MAX_ROUNDS: usize = 1000;
 
-/// Whether the raw per-frame rounds may stop before `round` (round 0 warms up, untimed): after
-/// [`RAW_FRAME_MIN_ROUNDS`] timed rounds, once `measured` reaches `enough`.
-fn timed_enough(round: usize, measured: Duration, enough: Duration) -> bool {
-    round > RAW_FRAME_MIN_ROUNDS && measured >= enough
+/// Whether the raw per-frame reference has timed enough after `rounds` timed rounds: at least
+/// [`RAW_FRAME_MIN_ROUNDS`], and `measured` has reached `enough`.
+fn timed_enough(rounds: usize, measured: Duration, enough: Duration) -> bool {
+    rounds >= RAW_FRAME_MIN_ROUNDS && measured >= enough
 }
 
 /// One person's camera input `[3, S, S]` and point-fusion input `[N, 3 + K]`.
@@ -442,28 +442,31 @@ fn raw_ceiling(args: &BenchOptions, frames: &[Frame]) -> posefuse_data::error::R
         let fus: Vec<f32> = persons.iter().flat_map(|p| p.1.iter().copied()).collect();
         (cam, fus)
     };
-    // Per frame: one round to warm up, then rounds until RAW_FRAME_SECS have been measured (three
-    // rounds, a few hundred milliseconds, swung the p50 by 15 % from run to run).
+    // One frame's persons as one camera batch and one point batch, timed.
+    let mut run_frame = |persons: &[PersonInputs]| -> posefuse_data::error::Result<Duration> {
+        let refs: Vec<&PersonInputs> = persons.iter().collect();
+        let (cam, fus) = batch_of(&refs);
+        let t = Instant::now();
+        models.run(ModelKind::Camera, refs.len(), &cam)?;
+        models.run(ModelKind::PointFusion, refs.len(), &fus)?;
+        Ok(t.elapsed())
+    };
+    let frames: Vec<&Vec<PersonInputs>> = inputs.iter().filter(|p| !p.is_empty()).collect();
+    // One round to warm up, then rounds until RAW_FRAME_SECS have been timed (three rounds, a few
+    // hundred milliseconds, swung the p50 by 15 % from run to run).
+    for persons in &frames {
+        run_frame(persons)?;
+    }
     let mut per_frame = Vec::new();
     let (mut measured, enough) = (Duration::ZERO, Duration::from_secs_f64(args.load.duration.min(RAW_FRAME_SECS)));
-    for round in 0..=RAW_FRAME_MAX_ROUNDS {
-        if timed_enough(round, measured, enough) {
+    for rounds in 0..RAW_FRAME_MAX_ROUNDS {
+        if timed_enough(rounds, measured, enough) {
             break;
         }
-        for persons in &inputs {
-            if persons.is_empty() {
-                continue;
-            }
-            let refs: Vec<&(Vec<f32>, Vec<f32>)> = persons.iter().collect();
-            let (cam, fus) = batch_of(&refs);
-            let t = Instant::now();
-            models.run(ModelKind::Camera, refs.len(), &cam)?;
-            models.run(ModelKind::PointFusion, refs.len(), &fus)?;
-            if round > 0 {
-                let took = t.elapsed();
-                per_frame.push(took);
-                measured += took;
-            }
+        for persons in &frames {
+            let took = run_frame(persons)?;
+            per_frame.push(took);
+            measured += took;
         }
     }
     per_frame.sort();
@@ -720,14 +723,14 @@ mod tests {
     #[test]
     fn the_raw_reference_times_three_rounds_then_until_it_has_enough() {
         let (short, enough) = (Duration::from_millis(10), Duration::from_secs(1));
-        // the warm-up and three timed rounds always run, however much they measured
-        for round in 0..=RAW_FRAME_MIN_ROUNDS {
-            assert!(!timed_enough(round, enough * 2, enough), "round {round}");
+        // three timed rounds always run, however much they measured
+        for rounds in 0..RAW_FRAME_MIN_ROUNDS {
+            assert!(!timed_enough(rounds, enough * 2, enough), "after {rounds} rounds");
         }
         // then rounds go on until `enough` is measured, and no further
-        assert!(!timed_enough(RAW_FRAME_MIN_ROUNDS + 1, short, enough));
+        assert!(!timed_enough(RAW_FRAME_MIN_ROUNDS, short, enough));
         assert!(!timed_enough(40, enough - short, enough));
-        assert!(timed_enough(RAW_FRAME_MIN_ROUNDS + 1, enough, enough));
+        assert!(timed_enough(RAW_FRAME_MIN_ROUNDS, enough, enough));
         assert!(timed_enough(40, enough * 2, enough));
     }
 
