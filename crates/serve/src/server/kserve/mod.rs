@@ -6,6 +6,7 @@
 
 pub mod config;
 pub mod grpc;
+mod mapping;
 pub mod non_finite;
 pub mod rest;
 pub mod rest_shared_memory;

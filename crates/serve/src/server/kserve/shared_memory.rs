@@ -5,14 +5,14 @@
 //! the registered regions; it is off unless the server is started with `--system-shared-memory`,
 //! since a registration makes the server read and write an object the client names.
 //!
-//! Why positioned reads and writes (`pread`/`pwrite`) and not a mapping: the client owns the
-//! object and may write it, shrink it or unlink it while it is registered. Reading through a
-//! mapping that another process writes is a data race in Rust's memory model, and touching a
-//! mapped page past the end of a shrunk object is a SIGBUS that kills the server. A positioned
-//! read copies exactly the bytes a tensor names, once (the copy a mapped crop would cost too),
-//! and a shrunk object becomes a 400 naming the tensor. The object is opened at registration and
-//! held until unregistration, so an unlinked key stays readable, and a request that resolved its
-//! regions keeps them open until it answers (unregistering a region in use is safe).
+//! Inputs are read through a read-only mapping of the object (`mapping`), outputs written with
+//! positioned writes (`pwrite`). The client owns the object and may write it, shrink it or unlink
+//! it while it is registered: a read that touches a page past a shrunk object's end faults into
+//! an error rather than a crash (`mapping` says how), a read whose bytes lie past the object's
+//! end now is a 400 naming the tensor, and writes never grow the object. The object is opened and
+//! mapped at registration and held until unregistration, so an unlinked key stays readable, and a
+//! request that resolved its regions keeps them until it answers (unregistering a region in use
+//! is safe).
 
 use std::collections::BTreeMap;
 use std::fs::{File, OpenOptions};
@@ -20,6 +20,7 @@ use std::os::unix::fs::{FileExt, OpenOptionsExt};
 use std::path::PathBuf;
 use std::sync::{Arc, Mutex, MutexGuard};
 
+use super::mapping::Mapping;
 use posefuse_core::error::{Error, Result};
 
 /// Where POSIX shared-memory objects live on Linux (`shm_open("/k")` is `/dev/shm/k`).
@@ -58,6 +59,7 @@ pub struct RegionStatus {
 pub struct Region {
     status: RegionStatus,
     file: File,
+    map: Mapping,
     writable: bool,
 }
 
@@ -126,8 +128,8 @@ impl SystemSharedMemory {
                 format!("offset {offset} + byte_size {byte_size} runs past the end of `{key}` ({len} bytes)"),
             ));
         }
-        let region =
-            Region { status: RegionStatus { name: name.into(), key: key.into(), offset, byte_size }, file, writable };
+        let status = RegionStatus { name: name.into(), key: key.into(), offset, byte_size };
+        let region = Region::new(status, file, writable)?;
         let mut regions = self.regions();
         if regions.contains_key(name) {
             return Err(Error::field("name", format!("region `{name}` is already registered; unregister it first")));
@@ -182,6 +184,12 @@ impl SystemSharedMemory {
 }
 
 impl Region {
+    fn new(status: RegionStatus, file: File, writable: bool) -> Result<Region> {
+        let map = Mapping::new(&file, status.offset, status.byte_size)
+            .map_err(|e| Error::field("key", format!("`{}` cannot be mapped: {e}", status.key)))?;
+        Ok(Region { status, file, map, writable })
+    }
+
     /// Where `at` lies in the object, checked against the region's bounds.
     fn span(&self, tensor: &str, at: &ShmRef) -> Result<u64> {
         let end = at.offset.checked_add(at.byte_size);
@@ -213,9 +221,31 @@ impl Region {
 
     /// Fills `buf` from `offset` bytes into the region.
     pub fn read_into(&self, tensor: &str, offset: u64, buf: &mut [u8]) -> Result<()> {
-        let at = ShmRef { region: String::new(), byte_size: buf.len() as u64, offset };
-        let start = self.span(tensor, &at)?;
-        self.file.read_exact_at(buf, start).map_err(|e| self.io_error(tensor, e))
+        self.read_rows(tensor, offset, 0, buf.len(), buf)
+    }
+
+    /// Fills `out` with rows of `row` bytes, the first `offset` bytes into the region and each
+    /// `stride` bytes after the one before (an image's rectangle: one copy per row, no system
+    /// call but the check that the object still holds them).
+    pub fn read_rows(&self, tensor: &str, offset: u64, stride: u64, row: usize, out: &mut [u8]) -> Result<()> {
+        if row == 0 && !out.is_empty() || row != 0 && !out.len().is_multiple_of(row) {
+            return Err(Error::Runtime(format!("{} bytes asked for in rows of {row}", out.len())));
+        }
+        let rows = out.len().checked_div(row).unwrap_or(0) as u64;
+        let last = rows.saturating_sub(1).checked_mul(stride).and_then(|s| s.checked_add(offset));
+        let span = last.and_then(|l| l.checked_add(row as u64)).map(|end| end.saturating_sub(offset));
+        let at = ShmRef { region: String::new(), byte_size: span.unwrap_or(u64::MAX), offset };
+        let end = self.span(tensor, &at)? + at.byte_size;
+        let (first, stride) = (usize::try_from(offset), usize::try_from(stride));
+        let (Ok(first), Ok(stride)) = (first, stride) else {
+            return Err(Error::field(tensor, "shared_memory_offset is too large"));
+        };
+        let copied = self.map.copy_rows(first, stride, row, out);
+        let len = self.file.metadata().map_err(|e| self.io_error(tensor, e))?.len();
+        if copied.is_err() || len < end {
+            return Err(self.shrunk(tensor, len));
+        }
+        Ok(())
     }
 
     /// Writes `bytes` at `at` (which must have room for them); never past the object's end.
@@ -412,11 +442,9 @@ mod tests {
         let m = memory(dir.path());
         let e = m.register("r", "/missing", 0, 4).unwrap_err();
         assert!(e.to_string().contains("create it (shm_open) before registering"), "{e}");
-        let region = Region {
-            status: RegionStatus { name: "r".into(), key: "/obj".into(), offset: 0, byte_size: 4 },
-            file: File::open(dir.path()).unwrap(),
-            writable: false,
-        };
+        std::fs::write(dir.path().join("obj"), [0u8; 4]).unwrap();
+        let status = RegionStatus { name: "r".into(), key: "/obj".into(), offset: 0, byte_size: 4 };
+        let region = Region::new(status, File::open(dir.path().join("obj")).unwrap(), false).unwrap();
         let e = region.write("scores", &at("r", 0, 4), &[0; 4]).unwrap_err();
         assert!(e.to_string().contains("read-only"), "{e}");
     }

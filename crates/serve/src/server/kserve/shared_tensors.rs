@@ -65,8 +65,7 @@ impl PixelSource for SharedPixels {
         (self.width, self.height)
     }
 
-    /// One positioned read for whole rows, else one per row: the crops' pixels only, rather than
-    /// whole rows that would have to be faulted in and copied.
+    /// The crops' pixels only, row by row from the mapping, rather than whole rows.
     fn read_rect_into(&self, r: PixelRect, out: &mut [u8]) -> std::result::Result<(), String> {
         if r.x0 > r.x1 || r.y0 > r.y1 || r.x1 > self.width || r.y1 > self.height {
             return Err(format!("rectangle {r:?} is not inside the {}×{} image", self.width, self.height));
@@ -75,13 +74,8 @@ impl PixelSource for SharedPixels {
             return Err(format!("{} bytes asked for rectangle {r:?}", out.len()));
         }
         let row = (r.x1 - r.x0) as usize * 3;
-        let at = |y: u32| self.at.offset + (u64::from(y) * u64::from(self.width) + u64::from(r.x0)) * 3;
-        let read = if (r.x0, r.x1) == (0, self.width) || row == 0 {
-            self.region.read_into(IMAGE_RGB, at(r.y0), out)
-        } else {
-            let mut rows = out.chunks_exact_mut(row).zip(r.y0..r.y1);
-            rows.try_for_each(|(dst, y)| self.region.read_into(IMAGE_RGB, at(y), dst))
-        };
+        let first = self.at.offset + (u64::from(r.y0) * u64::from(self.width) + u64::from(r.x0)) * 3;
+        let read = self.region.read_rows(IMAGE_RGB, first, u64::from(self.width) * 3, row, out);
         read.map_err(|e| e.to_string())
     }
 }
