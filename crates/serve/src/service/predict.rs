@@ -27,6 +27,11 @@ use posefuse_core::pipeline::{
     turn_points, yaw_difference, PipelineConfig, PointFrame, PointInput,
 };
 
+/// Makes a frame and its images on the blocking pool, under the pre-processing permit: inputs
+/// whose reading is work of its own (tensors in shared memory) are read there, in the same step
+/// as the crops, rather than in a step of their own before admission.
+pub type FrameBuilder = Box<dyn FnOnce() -> Result<(Frame, Option<RawImages>)> + Send>;
+
 /// Runs frames through the pipeline and the runtime. The runtime can be swapped while serving
 /// ([`Predictor::swap`]); a request keeps the runtime it started on.
 #[derive(Clone)]
@@ -141,6 +146,12 @@ impl Predictor {
         frame: Frame,
         raw_images: Option<RawImages>,
     ) -> Result<PoseResponse> {
+        self.predict_built(ticket, Box::new(move || Ok((frame, raw_images)))).await
+    }
+
+    /// [`Predictor::predict_admitted`] for a frame that `build` makes in the pre-processing step
+    /// (on the blocking pool, under its permit), where reading the inputs costs work of its own.
+    async fn predict_built(&self, ticket: &Ticket, build: FrameBuilder) -> Result<PoseResponse> {
         let started = Instant::now();
         let runtime = self.runtime();
         let stage = self.heading_stage.clone();
@@ -154,6 +165,7 @@ impl Predictor {
         let prepared = self
             .off_executor(ticket, &abandoned, move |abandoned| {
                 let t0 = Instant::now();
+                let (frame, raw_images) = build()?;
                 let mut valid = ValidFrame::new(frame, raw_images, &limits)?;
                 let validated = t0.elapsed();
                 let mut crops = CropCache::default();
@@ -272,8 +284,14 @@ impl Predictor {
         raw_images: Option<RawImages>,
         timeout: Duration,
     ) -> Result<PoseResponse> {
+        self.answer_built(ticket, Box::new(move || Ok((frame, raw_images))), timeout).await
+    }
+
+    /// [`Predictor::answer_admitted`] for a frame that `build` makes in the pre-processing step
+    /// ([`FrameBuilder`]); its errors are the request's.
+    pub async fn answer_built(&self, ticket: &Ticket, build: FrameBuilder, timeout: Duration) -> Result<PoseResponse> {
         let t0 = Instant::now();
-        let r = match tokio::time::timeout(timeout, self.predict_admitted(ticket, frame, raw_images)).await {
+        let r = match tokio::time::timeout(timeout, self.predict_built(ticket, build)).await {
             Ok(r) => r,
             Err(_) => Err(Error::Timeout(timeout.as_millis() as u64)),
         };

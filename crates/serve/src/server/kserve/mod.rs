@@ -15,6 +15,7 @@ pub mod shared_tensors;
 pub mod tensors;
 
 use std::sync::atomic::Ordering;
+use std::sync::{Arc, OnceLock};
 
 use super::AppState;
 use crate::service::admission::Ticket;
@@ -90,40 +91,48 @@ pub struct InferResponse {
     pub outputs: Vec<(OutputTensor, Placement)>,
 }
 
-/// Runs one inference: tensors (those in shared memory read first) → frame →
-/// `Predictor::answer_admitted` (with the server's deadline) → tensors (those asked for in
+/// Runs one inference: tensors (those in shared memory read in the pre-processing step) →
+/// frame → `Predictor::answer_built` (with the server's deadline) → tensors (those asked for in
 /// shared memory written there), on the ticket the request was admitted with. Errors name the
 /// tensor they come from.
 pub async fn infer(state: &AppState, ticket: &Ticket, req: InferRequest) -> Result<InferResponse> {
     let (model_name, model_version) = model(state, &req.model_name, req.model_version.as_deref())?;
     tensors::check_requested(req.outputs.as_deref())?;
     let output_regions = shared_tensors::hold_output_regions(&state.shared_memory, req.outputs.as_deref())?;
-    let mut inputs = req.inputs;
-    let mut shared_pixels = None;
-    if !req.shared_inputs.is_empty() {
-        // Positioned reads of up to --body-limit bytes: off the async executor, as a body's parse.
-        let (shm, limit) = (state.shared_memory.clone(), state.body_limit);
-        let shared = tokio::task::spawn_blocking(move || shared_tensors::read_inputs(&shm, req.shared_inputs, limit))
-            .await
-            .map_err(|e| Error::Runtime(format!("reading shared memory failed: {e}")))??;
-        inputs.extend(shared.tensors);
-        shared_pixels = shared.pixels;
-    }
-    let (frame, image) = tensors::frame_from_inputs(inputs, req.id.clone())?;
-    let raw = match (image, shared_pixels) {
-        (None, None) => None,
-        (Some(bytes), None) => Some(RawImages(vec![RawImage::Encoded(bytes)])),
-        (None, Some(rows)) => Some(RawImages(vec![RawImage::Rows(rows)])),
-        (Some(_), Some(_)) => {
-            return Err(Error::field("image_rgb", "send either `image` (file bytes) or `image_rgb` (pixels), not both"))
+    // The shared inputs are read, and the frame built, in the admitted pre-processing step.
+    let persons = Arc::new(OnceLock::new());
+    let build = {
+        let (shm, limit, persons) = (state.shared_memory.clone(), state.body_limit, persons.clone());
+        let (mut inputs, shared_inputs, id) = (req.inputs, req.shared_inputs, req.id.clone());
+        move || {
+            let mut shared_pixels = None;
+            if !shared_inputs.is_empty() {
+                let shared = shared_tensors::read_inputs(&shm, shared_inputs, limit)?;
+                inputs.extend(shared.tensors);
+                shared_pixels = shared.pixels;
+            }
+            let (frame, image) = tensors::frame_from_inputs(inputs, id)?;
+            let raw = match (image, shared_pixels) {
+                (None, None) => None,
+                (Some(bytes), None) => Some(RawImages(vec![RawImage::Encoded(bytes)])),
+                (None, Some(rows)) => Some(RawImages(vec![RawImage::Rows(rows)])),
+                (Some(_), Some(_)) => {
+                    return Err(Error::field(
+                        "image_rgb",
+                        "send either `image` (file bytes) or `image_rgb` (pixels), not both",
+                    ))
+                }
+            };
+            let _ = persons.set(frame.persons.len());
+            Ok((frame, raw))
         }
     };
-    let m = frame.persons.len();
     let resp = state
         .predictor
-        .answer_admitted(ticket, frame, raw, state.request_timeout)
+        .answer_built(ticket, Box::new(build), state.request_timeout)
         .await
         .map_err(tensors::rename_error)?;
+    let m = persons.get().copied().ok_or_else(|| Error::Runtime("the frame was answered unbuilt".into()))?;
     let all = tensors::outputs_from_response(&resp, m)?;
     let outputs = tensors::select_outputs(all, req.outputs.as_deref(), req.binary_output)?;
     let outputs = shared_tensors::write_outputs(outputs, &output_regions)?;
