@@ -2,8 +2,8 @@
 //! that makes mappings dangerous: the owner may shrink the object at any time, and touching a
 //! mapped page past its new end raises SIGBUS, which kills a process by default.
 //!
-//! Every read goes through [`Mapping::copy_rows`], which names the bytes it is about to touch in
-//! a thread-local before copying them. A SIGBUS handler, installed once, looks at that range: a
+//! Every read goes through [`Mapping::copy_rows`], which names the mapping it is about to read in
+//! a thread-local before copying. A SIGBUS handler, installed once, looks at that range: a
 //! fault inside it replaces the faulting page with a private page of zeros (the copy then runs to
 //! its end), marks the read as failed and the mapping as poisoned; any other SIGBUS goes to the
 //! handler that was there before. The same trick as Wayland compositors reading clients'
@@ -17,18 +17,19 @@
 //! protocol's contract); bytes it writes meanwhile may arrive torn, as with a positioned read.
 //! The copy reads through raw pointers only: no Rust reference to the mapped bytes is ever made.
 
-use std::cell::Cell;
 use std::fs::File;
 use std::os::fd::AsRawFd;
 use std::ptr::NonNull;
-use std::sync::atomic::{AtomicBool, Ordering};
+use std::sync::atomic::{compiler_fence, AtomicBool, AtomicUsize, Ordering};
 use std::sync::OnceLock;
 
+// Atomics, though no other thread touches them: the signal handler runs on this thread between
+// any two instructions, and only atomics (with the fences below) are ordered against it.
 thread_local! {
     /// The mapped addresses this thread is copying from now, `[start, end)`; empty otherwise.
-    static READING: Cell<(usize, usize)> = const { Cell::new((0, 0)) };
+    static READING: [AtomicUsize; 2] = const { [AtomicUsize::new(0), AtomicUsize::new(0)] };
     /// Whether a page of [`READING`] faulted (lay past the object's end).
-    static FAULTED: Cell<bool> = const { Cell::new(false) };
+    static FAULTED: AtomicBool = const { AtomicBool::new(false) };
 }
 
 /// The SIGBUS action found before ours, restored for faults that are not reads of a mapping.
@@ -98,15 +99,20 @@ impl Mapping {
         // SAFETY: `first..last_end` lies inside the mapping (checked above), which lives as long
         // as `self`; `out` is ours and does not overlap it.
         let src = unsafe { self.base.as_ptr().add(self.lead + first) };
-        let span = (src as usize, src as usize + (rows - 1) * stride + row);
-        READING.set(span);
-        FAULTED.set(false);
+        // A fault anywhere in this mapping during the copy is this copy's.
+        let base = self.base.as_ptr() as usize;
+        set_reading((base, base + self.mapped));
+        FAULTED.with(|f| f.store(false, Ordering::Relaxed));
+        // The handler is invisible to the compiler: the fences keep the range set and the flag
+        // read on their sides of the copy.
+        compiler_fence(Ordering::SeqCst);
         for (i, dst) in out.chunks_exact_mut(row).enumerate() {
-            // SAFETY: as above; each row lies inside `span`.
+            // SAFETY: as above; each row lies inside `first..last_end`.
             unsafe { std::ptr::copy_nonoverlapping(src.add(i * stride), dst.as_mut_ptr(), row) };
         }
-        READING.set((0, 0));
-        if FAULTED.replace(false) {
+        compiler_fence(Ordering::SeqCst);
+        set_reading((0, 0));
+        if FAULTED.with(|f| f.swap(false, Ordering::Relaxed)) {
             self.poisoned.store(true, Ordering::Relaxed);
         }
         self.intact()
@@ -126,6 +132,13 @@ impl Drop for Mapping {
         // SAFETY: the mapping made in `new` (pages a fault replaced included), unmapped once.
         unsafe { libc::munmap(self.base.as_ptr().cast(), self.mapped) };
     }
+}
+
+fn set_reading((start, end): (usize, usize)) {
+    READING.with(|r| {
+        r[0].store(start, Ordering::Relaxed);
+        r[1].store(end, Ordering::Relaxed);
+    });
 }
 
 fn too_large() -> std::io::Error {
@@ -165,7 +178,7 @@ fn install_handler() -> std::io::Result<()> {
 extern "C" fn on_sigbus(sig: libc::c_int, info: *mut libc::siginfo_t, _ctx: *mut libc::c_void) {
     // SAFETY: the kernel passes a valid siginfo for a SA_SIGINFO handler.
     let addr = unsafe { (*info).si_addr() } as usize;
-    let (start, end) = READING.get();
+    let (start, end) = READING.with(|r| (r[0].load(Ordering::Relaxed), r[1].load(Ordering::Relaxed)));
     if (start..end).contains(&addr) {
         let page = PAGE.get().copied().unwrap_or(4096);
         let at = addr & !(page - 1);
@@ -182,7 +195,7 @@ extern "C" fn on_sigbus(sig: libc::c_int, info: *mut libc::siginfo_t, _ctx: *mut
             )
         };
         if p != libc::MAP_FAILED {
-            FAULTED.set(true);
+            FAULTED.with(|f| f.store(true, Ordering::Relaxed));
             return;
         }
     }
@@ -239,6 +252,47 @@ mod tests {
     }
 
     #[test]
+    fn a_dropped_mapping_is_unmapped() {
+        let (keep, file) = object(&[3; 64]);
+        let mapped = || {
+            let maps = std::fs::read_to_string("/proc/self/maps").unwrap();
+            maps.lines().filter(|l| l.ends_with(keep.path().to_str().unwrap())).count()
+        };
+        let m = Mapping::new(&file, 0, 64).unwrap();
+        assert_eq!(mapped(), 1);
+        drop(m);
+        assert_eq!(mapped(), 0, "a region unregistered and answered leaves no mapping behind");
+    }
+
+    /// Set in the child process of the test below, to the directory it makes its object in.
+    const CHILD: &str = "POSEFUSE_TEST_SIGBUS_DIR";
+
+    #[test]
+    fn a_fault_outside_a_read_is_left_to_the_previous_action() {
+        let page = page_size();
+        if let Some(dir) = std::env::var_os(CHILD) {
+            let path = std::path::Path::new(&dir).join("obj");
+            std::fs::write(&path, vec![7u8; 2 * page]).unwrap();
+            let m = Mapping::new(&File::open(&path).unwrap(), 0, 2 * page as u64).unwrap();
+            assert_eq!(rows(&m, 0, 0, 1, 1).unwrap(), vec![7], "the handler is installed");
+            File::options().write(true).open(&path).unwrap().set_len(0).unwrap();
+            // SAFETY: deliberately touches a mapped page past the object's end, outside a read.
+            let v = unsafe { std::ptr::read_volatile(m.base.as_ptr().add(page)) };
+            panic!("read {v} past the end without a fault");
+        }
+        let dir = tempfile::tempdir().unwrap();
+        let name = format!("{}::a_fault_outside_a_read_is_left_to_the_previous_action", module_path!());
+        let name = name.split_once("::").map_or(name.as_str(), |(_, rest)| rest);
+        let out = std::process::Command::new(std::env::current_exe().unwrap())
+            .args(["--exact", name, "--test-threads", "1"])
+            .env(CHILD, dir.path())
+            .output()
+            .unwrap();
+        use std::os::unix::process::ExitStatusExt;
+        assert_eq!(out.status.signal(), Some(libc::SIGBUS), "{out:?}");
+    }
+
+    #[test]
     fn a_shrunk_object_faults_into_an_error_not_a_crash_and_stays_refused() {
         let page = page_size();
         let (keep, file) = object(&vec![7u8; 4 * page]);
@@ -246,7 +300,7 @@ mod tests {
         assert_eq!(rows(&m, page, 0, 16, 1).unwrap(), vec![7; 16], "touched before the shrink");
         File::options().write(true).open(keep.path()).unwrap().set_len(page as u64).unwrap();
         assert_eq!(rows(&m, 0, 0, 16, 1).unwrap(), vec![7; 16], "the page still inside the object");
-        assert_eq!(rows(&m, 2 * page, page, 8, 2), Err(PastTheEnd), "pages past the new end");
+        assert_eq!(rows(&m, 0, page, 8, 4), Err(PastTheEnd), "rows 2 to 4 lie past the new end");
         assert_eq!(rows(&m, 0, 0, 16, 1), Err(PastTheEnd), "poisoned: a page shows zeros now");
         let other = Mapping::new(&file, 0, page as u64).unwrap();
         assert_eq!(rows(&other, 0, 0, 16, 1).unwrap(), vec![7; 16], "a fresh mapping reads again");

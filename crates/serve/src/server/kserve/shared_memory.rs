@@ -240,9 +240,18 @@ impl Region {
         let (Ok(first), Ok(stride)) = (first, stride) else {
             return Err(Error::field(tensor, "shared_memory_offset is too large"));
         };
-        let copied = self.map.copy_rows(first, stride, row, out);
+        if self.map.copy_rows(first, stride, row, out).is_err() {
+            // The mapping shows zeros where the object was cut: nothing read through it is right.
+            return Err(Error::field(
+                tensor,
+                format!(
+                    "shared memory object `{}` shrank while region `{}` was registered; unregister and register it again",
+                    self.status.key, self.status.name
+                ),
+            ));
+        }
         let len = self.file.metadata().map_err(|e| self.io_error(tensor, e))?.len();
-        if copied.is_err() || len < end {
+        if len < end {
             return Err(self.shrunk(tensor, len));
         }
         Ok(())
@@ -384,6 +393,13 @@ mod tests {
         assert_eq!(r.read("points", &at("r", 12, 4)).unwrap(), vec![20, 21, 22, 23]);
         assert_eq!(field_of(r.read("points", &at("r", 12, 5))), "points");
         assert_eq!(field_of(r.read("points", &at("r", u64::MAX, 2))), "points");
+        let mut rows = [0u8; 6];
+        r.read_rows("points", 1, 5, 3, &mut rows).unwrap();
+        assert_eq!(rows, [9, 10, 11, 14, 15, 16], "two rows of 3, 5 bytes apart");
+        for (row, len) in [(4, 5), (0, 2)] {
+            let e = r.read_rows("points", 0, 4, row, &mut rows[..len]).unwrap_err();
+            assert!(matches!(e, Error::Runtime(_)), "{len} bytes in rows of {row}: {e}");
+        }
         r.write("scores", &at("r", 2, 3), &[7, 7]).unwrap();
         assert_eq!(std::fs::read(dir.path().join("obj")).unwrap()[8..14], [8, 9, 7, 7, 12, 13]);
         assert_eq!(field_of(r.write("scores", &at("r", 0, 1), &[1, 2])), "scores");
@@ -477,6 +493,32 @@ mod tests {
         assert!(e.to_string().contains("shrank to 10 bytes"), "{e}");
         assert_eq!(field_of(r.write("scores", &at("r", 8, 8), &[0; 8])), "scores");
         assert_eq!(std::fs::metadata(&path).unwrap().len(), 10, "a write never grows the object");
+    }
+
+    #[test]
+    fn an_object_shrunk_past_a_page_faults_into_an_error_and_its_region_stays_refused() {
+        // SAFETY: sysconf has no preconditions.
+        let page = usize::try_from(unsafe { libc::sysconf(libc::_SC_PAGESIZE) }).unwrap();
+        let page_u64 = page as u64;
+        let dir = tempfile::tempdir().unwrap();
+        let path = dir.path().join("obj");
+        std::fs::write(&path, vec![1u8; 3 * page]).unwrap();
+        let m = memory(dir.path());
+        m.register("r", "/obj", 0, 3 * page_u64).unwrap();
+        let r = m.region("image_rgb", &at("r", 0, 16)).unwrap();
+        File::options().write(true).open(&path).unwrap().set_len(page_u64).unwrap();
+        assert_eq!(r.read("points", &at("r", 0, 16)).unwrap(), vec![1; 16], "bytes the object still holds");
+        let mut rows = vec![0u8; 3 * 8];
+        let e = r.read_rows("image_rgb", 0, page_u64, 8, &mut rows).unwrap_err();
+        assert_eq!(e.field_name(), Some("image_rgb"));
+        assert!(e.to_string().contains("register it again"), "{e}");
+        std::fs::write(&path, vec![1u8; 3 * page]).unwrap();
+        let e = r.read("points", &at("r", 0, 16)).unwrap_err();
+        assert!(e.to_string().contains("register it again"), "grown again, the mapping still shows zeros: {e}");
+        m.unregister("r").unwrap();
+        m.register("r", "/obj", 0, 3 * page_u64).unwrap();
+        let r = m.region("points", &at("r", 0, 16)).unwrap();
+        assert_eq!(r.read("points", &at("r", 2 * page_u64, 16)).unwrap(), vec![1; 16], "registered again, it reads");
     }
 
     #[test]

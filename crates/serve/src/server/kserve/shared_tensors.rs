@@ -1,6 +1,6 @@
-//! A request's tensors that lie in system shared memory (`shared_memory`): inputs read before
-//! the frame is built (except the camera's pixels, which the crops read a band of rows at a time,
-//! [`SharedPixels`]), output regions held before inference runs and written after it. The
+//! A request's tensors that lie in system shared memory (`shared_memory`): inputs read when the
+//! frame is built, in the request's pre-processing step (except the camera's pixels, which each
+//! crop reads as the rectangle its window needs, [`SharedPixels`]), output regions held before inference runs and written after it. The
 //! transports parse the `shared_memory_*` parameters into [`ShmRef`]s; this is the one place
 //! that reads and writes the regions for a request.
 
@@ -25,7 +25,7 @@ pub struct SharedInput {
 /// The camera image's name among the inputs.
 const IMAGE_RGB: &str = "image_rgb";
 
-/// The camera's RGB8 pixels in a held region, read a band of rows at a time by the crops.
+/// The camera's RGB8 pixels in a held region, read a crop's rectangle at a time.
 pub struct SharedPixels {
     region: Arc<Region>,
     at: ShmRef,
