@@ -111,6 +111,12 @@ async fn metrics_follow_prometheus_conventions() {
     for model in ["camera", "point_fusion", "point_lidar"] {
         assert!(has(&format!("posefuse_queue_wait_seconds_count{{model=\"{model}\"}}")), "queue wait of {model}");
     }
+    // the fusion frame's point input, chained behind its camera, waited for its network too
+    for model in ["camera", "point_fusion"] {
+        let count = format!("posefuse_queue_wait_seconds_count{{model=\"{model}\"}} ");
+        let n = samples.iter().find_map(|l| l.strip_prefix(count.as_str())).and_then(|v| v.parse::<f64>().ok());
+        assert!(n.is_some_and(|n| n >= 1.0), "{count}: {n:?}\n{page}");
+    }
     let version = env!("CARGO_PKG_VERSION");
     let bundle = &s.predictor.bundle().manifest;
     let info = format!(

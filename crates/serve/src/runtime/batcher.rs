@@ -324,23 +324,28 @@ fn worker_loop(models: &mut Models, rx: &Receiver<Job>, gate: &Gate, max_batch: 
 }
 
 /// One round: the camera batch (camera jobs and chains) first, then chains' point inputs, then
-/// one batch per point network; between the stages, jobs whose callers gave up are dropped.
+/// one batch per point network; between the stages, jobs whose callers gave up are dropped. A
+/// job's queue wait runs until its network starts on it: a point job waits for the round's
+/// camera batch as well, and a chain's point input from its smoothing to its point batch.
 fn run_round(models: &mut Models, jobs: Vec<Job>) {
     let started = Instant::now();
     let item = |reply, enqueued: Instant, kind: ModelKind, parent: tracing::Span, queue_span: tracing::Span| {
         let queue = started.saturating_duration_since(enqueued);
-        metrics::histogram!("posefuse_queue_wait_seconds", "model" => kind.key()).record(queue.as_secs_f64());
+        if kind == ModelKind::Camera {
+            metrics::histogram!("posefuse_queue_wait_seconds", "model" => kind.key()).record(queue.as_secs_f64());
+        }
         drop(queue_span);
         let span = tracing::info_span!(parent: &parent, "inference", model = kind.key(), batch = tracing::field::Empty);
         Item { job_reply: reply, span, queue, camera: None, inference: Duration::ZERO, between: Duration::ZERO }
     };
     let mut camera: Vec<CameraEntry> = Vec::new();
-    let mut points: [Vec<(Item, Vec<f32>)>; 3] = Default::default();
+    // each point input with the time it was ready from (what its queue wait counts so far)
+    let mut points: [Vec<(Item, Vec<f32>, Instant)>; 3] = Default::default();
     for j in jobs {
         let it = item(j.reply, j.enqueued, kind_of(&j.work), j.parent, j.queue);
         match j.work {
             Work::Single { kind: ModelKind::Camera, input } => camera.push((it, input, None)),
-            Work::Single { kind, input } => points[slot(kind)].push((it, input)),
+            Work::Single { kind, input } => points[slot(kind)].push((it, input, started)),
             Work::Chain { camera: input, point, then } => camera.push((it, input, Some((point, then)))),
         }
     }
@@ -356,11 +361,12 @@ fn run_round(models: &mut Models, jobs: Vec<Job>) {
                 (Ok(h), Some((kind, then))) => {
                     let t = Instant::now();
                     let next = then(&h);
-                    it.between = t.elapsed();
+                    let ready = Instant::now();
+                    it.between = ready - t;
                     it.camera = Some(h);
                     let want = models.io(kind).input_len();
                     if next.len() == want {
-                        points[slot(kind)].push((it, next));
+                        points[slot(kind)].push((it, next, ready));
                     } else {
                         let e = format!("{}: chained input of {} floats, expected {want}", kind.key(), next.len());
                         reply(it, Err(Error::Runtime(e)), 1);
@@ -371,14 +377,23 @@ fn run_round(models: &mut Models, jobs: Vec<Job>) {
         }
     }
     for (kind, mut group) in ModelKind::ALL.into_iter().zip(points) {
-        group.retain(|(it, _)| !it.job_reply.is_closed());
+        group.retain(|(it, _, _)| !it.job_reply.is_closed());
         if group.is_empty() {
             continue;
+        }
+        let start = Instant::now();
+        for (it, _, ready) in &mut group {
+            let wait = start.saturating_duration_since(*ready);
+            it.queue += wait;
+            // a chain's camera part is counted under the camera
+            let chained = it.camera.is_some();
+            let waited = if chained { wait } else { it.queue };
+            metrics::histogram!("posefuse_queue_wait_seconds", "model" => kind.key()).record(waited.as_secs_f64());
         }
         let inputs: Vec<&[f32]> = group.iter().map(|g| g.1.as_slice()).collect();
         let (outputs, took) = run_batch(models, kind, &inputs);
         let batch = outputs.len();
-        for ((mut it, _), out) in group.into_iter().zip(outputs) {
+        for ((mut it, _, _), out) in group.into_iter().zip(outputs) {
             it.inference += took;
             reply(it, out, batch);
         }
