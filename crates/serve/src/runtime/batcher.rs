@@ -383,11 +383,8 @@ fn run_round(models: &mut Models, jobs: Vec<Job>) {
         }
         let start = Instant::now();
         for (it, _, ready) in &mut group {
-            let wait = start.saturating_duration_since(*ready);
-            it.queue += wait;
-            // a chain's camera part is counted under the camera
-            let chained = it.camera.is_some();
-            let waited = if chained { wait } else { it.queue };
+            let (queue, waited) = point_wait(it.queue, *ready, start, it.camera.is_some());
+            it.queue = queue;
             metrics::histogram!("posefuse_queue_wait_seconds", "model" => kind.key()).record(waited.as_secs_f64());
         }
         let inputs: Vec<&[f32]> = group.iter().map(|g| g.1.as_slice()).collect();
@@ -398,6 +395,15 @@ fn run_round(models: &mut Models, jobs: Vec<Job>) {
             reply(it, out, batch);
         }
     }
+}
+
+/// A point job's queue wait when its batch starts at `start`: its whole wait (`queue` so far, to
+/// the round's start, plus from `ready` on) and the wait recorded under its network, which for a
+/// chain is only the time since its input was ready (its camera part is the camera's).
+fn point_wait(queue: Duration, ready: Instant, start: Instant, chained: bool) -> (Duration, Duration) {
+    let wait = start.saturating_duration_since(ready);
+    let queue = queue + wait;
+    (queue, if chained { wait } else { queue })
 }
 
 /// The network a job starts with.
@@ -449,6 +455,15 @@ fn run_batch(models: &mut Models, kind: ModelKind, inputs: &[&[f32]]) -> (Vec<Re
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_point_job_waits_until_its_batch_starts_and_a_chain_counts_its_own_part() {
+        let (ms, ready) = (Duration::from_millis, Instant::now());
+        let start = ready + ms(3);
+        assert_eq!(point_wait(ms(2), ready, start, false), (ms(5), ms(5)), "a single job: all of its wait");
+        assert_eq!(point_wait(ms(2), ready, start, true), (ms(5), ms(3)), "a chain: its point part");
+        assert_eq!(point_wait(ms(2), start, ready, true), (ms(2), ms(0)), "started before ready: no wait");
+    }
 
     #[test]
     fn a_heading_stage_keeps_everything_but_the_main_cameras_precision() {
