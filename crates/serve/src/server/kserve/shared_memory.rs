@@ -250,7 +250,7 @@ impl Region {
                 ),
             ));
         }
-        let len = self.file.metadata().map_err(|e| self.io_error(tensor, e))?.len();
+        let len = self.file.metadata().map_err(|e| self.io_error(e))?.len();
         if len < end {
             return Err(self.shrunk(tensor, len));
         }
@@ -275,11 +275,11 @@ impl Region {
                 ),
             ));
         }
-        let len = self.file.metadata().map_err(|e| self.io_error(tensor, e))?.len();
+        let len = self.file.metadata().map_err(|e| self.io_error(e))?.len();
         if start + bytes.len() as u64 > len {
             return Err(self.shrunk(tensor, len));
         }
-        self.file.write_all_at(bytes, start).map_err(|e| self.io_error(tensor, e))
+        self.file.write_all_at(bytes, start).map_err(|e| self.io_error(e))
     }
 
     fn shrunk(&self, tensor: &str, len: u64) -> Error {
@@ -292,11 +292,7 @@ impl Region {
         )
     }
 
-    fn io_error(&self, tensor: &str, e: std::io::Error) -> Error {
-        if e.kind() == std::io::ErrorKind::UnexpectedEof {
-            let len = self.file.metadata().map(|m| m.len()).unwrap_or(0);
-            return self.shrunk(tensor, len);
-        }
+    fn io_error(&self, e: std::io::Error) -> Error {
         Error::Io(format!("shared memory region `{}`: {e}", self.status.name))
     }
 }
