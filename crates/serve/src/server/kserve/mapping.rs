@@ -33,7 +33,8 @@ thread_local! {
 }
 
 /// The SIGBUS action found before ours, restored for faults that are not reads of a mapping.
-static PREVIOUS: OnceLock<libc::sigaction> = OnceLock::new();
+/// Or the error code of a failed installation, which leaves every later mapping refused.
+static PREVIOUS: OnceLock<Result<libc::sigaction, i32>> = OnceLock::new();
 static PAGE: OnceLock<usize> = OnceLock::new();
 
 /// A read touched a page past the end of the object (it shrank), now or in an earlier read.
@@ -151,27 +152,27 @@ fn page_size() -> usize {
 }
 
 fn install_handler() -> std::io::Result<()> {
-    if PREVIOUS.get().is_some() {
-        return Ok(());
-    }
     page_size();
-    // SAFETY: a zeroed sigaction is a valid value; the handler is async-signal-safe (it reads
-    // thread-locals without destructors, calls mmap or sigaction, and sets a flag).
-    unsafe {
-        let mut ours: libc::sigaction = std::mem::zeroed();
-        ours.sa_sigaction = on_sigbus as *const () as usize;
-        ours.sa_flags = libc::SA_SIGINFO | libc::SA_ONSTACK;
-        libc::sigemptyset(&mut ours.sa_mask);
-        let mut previous: libc::sigaction = std::mem::zeroed();
-        // One installation: the lock makes a second thread wait for the first.
-        let mut result = Ok(());
-        PREVIOUS.get_or_init(|| {
-            if libc::sigaction(libc::SIGBUS, &ours, &mut previous) != 0 {
-                result = Err(std::io::Error::last_os_error());
+    // One installation: the lock makes a second thread wait for the first.
+    let installed = PREVIOUS.get_or_init(|| {
+        // SAFETY: a zeroed sigaction is a valid value; the handler is async-signal-safe (it reads
+        // thread-locals without destructors, calls mmap or sigaction, and sets a flag).
+        unsafe {
+            let mut ours: libc::sigaction = std::mem::zeroed();
+            ours.sa_sigaction = on_sigbus as *const () as usize;
+            ours.sa_flags = libc::SA_SIGINFO | libc::SA_ONSTACK;
+            libc::sigemptyset(&mut ours.sa_mask);
+            let mut previous: libc::sigaction = std::mem::zeroed();
+            if libc::sigaction(libc::SIGBUS, &ours, &mut previous) == 0 {
+                Ok(previous)
+            } else {
+                Err(std::io::Error::last_os_error().raw_os_error().unwrap_or(0))
             }
-            previous
-        });
-        result
+        }
+    });
+    match installed {
+        Ok(_) => Ok(()),
+        Err(code) => Err(std::io::Error::from_raw_os_error(*code)),
     }
 }
 
@@ -200,7 +201,7 @@ extern "C" fn on_sigbus(sig: libc::c_int, info: *mut libc::siginfo_t, _ctx: *mut
         }
     }
     // Not a read of ours: the previous action takes the fault when the instruction runs again.
-    if let Some(previous) = PREVIOUS.get() {
+    if let Some(Ok(previous)) = PREVIOUS.get() {
         // SAFETY: restores an action the kernel gave us.
         unsafe { libc::sigaction(sig, previous, std::ptr::null_mut()) };
     }

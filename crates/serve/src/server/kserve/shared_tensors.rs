@@ -1,8 +1,8 @@
 //! A request's tensors that lie in system shared memory (`shared_memory`): inputs read when the
 //! frame is built, in the request's pre-processing step (except the camera's pixels, which each
-//! crop reads as the rectangle its window needs, [`SharedPixels`]), output regions held before inference runs and written after it. The
-//! transports parse the `shared_memory_*` parameters into [`ShmRef`]s; this is the one place
-//! that reads and writes the regions for a request.
+//! crop reads as the rectangle its window needs, [`SharedPixels`]), output regions held before
+//! inference runs and written after it. The transports parse the `shared_memory_*` parameters
+//! into [`ShmRef`]s; this is the one place that reads and writes the regions for a request.
 
 use std::sync::Arc;
 
