@@ -8,7 +8,8 @@ use posefuse::frame::{Box2d, Box3d, CameraCalibration};
 use posefuse::geometry::Camera;
 use posefuse::keypoints::K;
 use posefuse::pipeline::{
-    crop_rgb, gather_points, normalize, point_input, prepare_person, smoothed_features, PipelineConfig,
+    crop_rgb, fusion_input, gather_points, normalize, point_input, prepare_person, smoothed_features, PipelineConfig,
+    Sampling,
 };
 use rand::{Rng, SeedableRng};
 use rand_chacha::ChaCha8Rng;
@@ -72,10 +73,19 @@ fn bench_person(c: &mut Criterion, image_size: u32) {
     c.bench_function(&format!("fusion_s{image_size}"), |b| {
         b.iter(|| black_box(smoothed_features(&heatmaps, K, hw, hw, &uv, &cfg)))
     });
+    // the default bundle's fusion (models/default/manifest.json): every cell smoothed with a
+    // 5-tap Gaussian, then sampled between the four cells around each point
+    let bilinear =
+        PipelineConfig { sampling: Sampling::Bilinear, smoothing_kernel: 5, smoothing_sigma: 1.5, ..cfg.clone() };
+    let xyz = vec![[0.0f32; 3]; uv.len()];
+    c.bench_function(&format!("fusion_bilinear_s{image_size}"), |b| {
+        b.iter(|| black_box(fusion_input(&heatmaps, &xyz, &uv, &bilinear)))
+    });
 }
 
 fn pipeline(c: &mut Criterion) {
     bench_person(c, 256);
+    bench_person(c, 128);
     bench_person(c, 64);
 }
 

@@ -27,19 +27,25 @@ pub fn smooth_heatmaps(heatmaps: &[f32], k: usize, h: usize, w: usize, cfg: &Pip
     let r = g.len() / 2;
     let mut tmp = vec![0.0f32; h * w];
     let mut out = vec![0.0f32; k * h * w];
+    if w == 0 {
+        return out;
+    }
     for c in 0..k {
         let src = &heatmaps[c * h * w..(c + 1) * h * w];
-        // rows
-        for i in 0..h {
-            let row = &src[i * w..(i + 1) * w];
-            for j in 0..w {
-                let lo = j.saturating_sub(r);
-                let hi = (j + r).min(w - 1);
-                let mut acc = 0.0;
-                for (jj, v) in row.iter().enumerate().take(hi + 1).skip(lo) {
-                    acc += v * g[jj + r - j];
+        // rows, a tap at a time over the whole row (so that it vectorises); each cell still sums
+        // its taps left to right from zero, as a loop per cell would
+        for (row, t) in src.chunks_exact(w).zip(tmp.chunks_exact_mut(w)) {
+            t.fill(0.0);
+            for (tap, wgt) in g.iter().enumerate() {
+                // cell j reads row[j + tap − r] where that lies inside the row
+                let (from, to) = if tap >= r { (tap - r, 0) } else { (0, r - tap) };
+                if from >= w || to >= w {
+                    continue;
                 }
-                tmp[i * w + j] = acc;
+                let n = w - from.max(to);
+                for (o, v) in t[to..to + n].iter_mut().zip(&row[from..from + n]) {
+                    *o += v * wgt;
+                }
             }
         }
         // columns
@@ -242,6 +248,49 @@ mod tests {
         let s = smooth_heatmaps(&corner, 1, h, w, &cfg);
         let inside: f32 = g.iter().enumerate().filter(|(i, _)| i / 7 >= 3 && i % 7 >= 3).map(|(_, v)| v).sum();
         assert!((s.iter().sum::<f32>() - inside).abs() < 1e-6);
+    }
+
+    /// Each cell's taps summed one by one, the plain way: what [`smooth_heatmaps`] must equal bit
+    /// for bit.
+    fn smoothed_cell_by_cell(hm: &[f32], k: usize, h: usize, w: usize, g: &[f32]) -> Vec<f32> {
+        let r = g.len() / 2;
+        let mut out = vec![0.0f32; k * h * w];
+        for c in 0..k {
+            let mut tmp = vec![0.0f32; h * w];
+            for i in 0..h {
+                for j in 0..w {
+                    let mut acc = 0.0;
+                    for jj in j.saturating_sub(r)..=(j + r).min(w - 1) {
+                        acc += hm[c * h * w + i * w + jj] * g[jj + r - j];
+                    }
+                    tmp[i * w + j] = acc;
+                }
+            }
+            for i in 0..h {
+                for j in 0..w {
+                    let mut acc = 0.0;
+                    for ii in i.saturating_sub(r)..=(i + r).min(h - 1) {
+                        acc += g[ii + r - i] * tmp[ii * w + j];
+                    }
+                    out[c * h * w + i * w + j] = acc;
+                }
+            }
+        }
+        out
+    }
+
+    #[test]
+    fn smoothing_a_tap_at_a_time_equals_summing_each_cell_bit_for_bit() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
+        // grids narrower and shorter than the kernel, square and not
+        for (k, h, w, size, sigma) in [(13, 32, 32, 5, 1.5), (2, 9, 3, 7, 3.0), (1, 2, 11, 7, 2.0), (3, 1, 1, 3, 1.0)] {
+            let cfg = PipelineConfig { smoothing_kernel: size, smoothing_sigma: sigma, ..PipelineConfig::default() };
+            let hm: Vec<f32> = (0..k * h * w).map(|_| rng.random::<f32>()).collect();
+            let want = smoothed_cell_by_cell(&hm, k, h, w, &gaussian_1d(size, sigma));
+            assert_eq!(smooth_heatmaps(&hm, k, h, w, &cfg), want, "{k}×{h}×{w}, kernel {size}");
+        }
+        assert!(smooth_heatmaps(&[], 2, 4, 0, &PipelineConfig::default()).is_empty());
     }
 
     #[test]
