@@ -3,7 +3,8 @@
 //! threads where it waits: the async task that holds it sleeps while the inference worker runs
 //! the networks, and is woken by the worker's answer; the client sleeps until the response comes.
 //! On a virtual machine whose idle vCPUs the host deschedules, a wake after a long sleep costs
-//! far more than one after a short sleep (BENCHMARKS.md, "What a wake costs").
+//! far more than one after a short sleep (BENCHMARKS.md, "Where one shared-memory request's time
+//! goes, and what a wake costs").
 //!
 //! `cargo bench --bench wake` prints the p50 and p90 wake latency per sleep; under `cargo test`
 //! it runs a few rounds only.
