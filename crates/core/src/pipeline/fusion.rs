@@ -284,7 +284,8 @@ mod tests {
         use rand::{Rng, SeedableRng};
         let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(5);
         // grids narrower and shorter than the kernel, square and not
-        for (k, h, w, size, sigma) in [(13, 32, 32, 5, 1.5), (2, 9, 3, 7, 3.0), (1, 2, 11, 7, 2.0), (3, 1, 1, 3, 1.0)] {
+        let grids = [(13, 32, 32, 5, 1.5), (2, 9, 3, 7, 3.0), (1, 2, 11, 7, 2.0), (3, 1, 1, 3, 1.0), (1, 3, 1, 7, 2.0)];
+        for (k, h, w, size, sigma) in grids {
             let cfg = PipelineConfig { smoothing_kernel: size, smoothing_sigma: sigma, ..PipelineConfig::default() };
             let hm: Vec<f32> = (0..k * h * w).map(|_| rng.random::<f32>()).collect();
             let want = smoothed_cell_by_cell(&hm, k, h, w, &gaussian_1d(size, sigma));
