@@ -109,8 +109,11 @@ type CameraEntry = (Item, Vec<f32>, Option<(ModelKind, ChainStep)>);
 /// A job's place in the batches of one worker round.
 struct Item {
     job_reply: oneshot::Sender<Result<JobOutput>>,
-    /// From the round's start to the reply.
+    /// From the start of the job's first network to the reply.
     span: tracing::Span,
+    /// A point job's `queue` span, open until its batch starts (after the round's camera batch),
+    /// and the request span its `inference` span then opens under.
+    waiting: Option<(tracing::Span, tracing::Span)>,
     queue: Duration,
     camera: Option<Vec<f32>>,
     inference: Duration,
@@ -331,12 +334,22 @@ fn run_round(models: &mut Models, jobs: Vec<Job>) {
     let started = Instant::now();
     let item = |reply, enqueued: Instant, kind: ModelKind, parent: tracing::Span, queue_span: tracing::Span| {
         let queue = started.saturating_duration_since(enqueued);
-        if kind == ModelKind::Camera {
+        let (span, waiting) = if kind == ModelKind::Camera {
             metrics::histogram!("posefuse_queue_wait_seconds", "model" => kind.key()).record(queue.as_secs_f64());
+            drop(queue_span);
+            (inference_span(&parent, kind), None)
+        } else {
+            (tracing::Span::none(), Some((queue_span, parent)))
+        };
+        Item {
+            job_reply: reply,
+            span,
+            waiting,
+            queue,
+            camera: None,
+            inference: Duration::ZERO,
+            between: Duration::ZERO,
         }
-        drop(queue_span);
-        let span = tracing::info_span!(parent: &parent, "inference", model = kind.key(), batch = tracing::field::Empty);
-        Item { job_reply: reply, span, queue, camera: None, inference: Duration::ZERO, between: Duration::ZERO }
     };
     let mut camera: Vec<CameraEntry> = Vec::new();
     // each point input with the time it was ready from (what its queue wait counts so far)
@@ -386,6 +399,10 @@ fn run_round(models: &mut Models, jobs: Vec<Job>) {
             let (queue, waited) = point_wait(it.queue, *ready, start, it.camera.is_some());
             it.queue = queue;
             metrics::histogram!("posefuse_queue_wait_seconds", "model" => kind.key()).record(waited.as_secs_f64());
+            if let Some((queue_span, parent)) = it.waiting.take() {
+                drop(queue_span);
+                it.span = inference_span(&parent, kind);
+            }
         }
         let inputs: Vec<&[f32]> = group.iter().map(|g| g.1.as_slice()).collect();
         let (outputs, took) = run_batch(models, kind, &inputs);
@@ -395,6 +412,11 @@ fn run_round(models: &mut Models, jobs: Vec<Job>) {
             reply(it, out, batch);
         }
     }
+}
+
+/// The `inference` span of a job whose first network starts now, under the request's span.
+fn inference_span(parent: &tracing::Span, kind: ModelKind) -> tracing::Span {
+    tracing::info_span!(parent: parent, "inference", model = kind.key(), batch = tracing::field::Empty)
 }
 
 /// A point job's queue wait when its batch starts at `start`: its whole wait (`queue` so far, to
