@@ -252,3 +252,18 @@ pub async fn start_with_admin(config: ServerConfig, admin: bool) -> (TestServer,
     }
     panic!("server did not become ready");
 }
+
+/// A job input of `len` floats, different for each `seed`.
+pub fn input(len: usize, seed: f32) -> Vec<f32> {
+    (0..len).map(|i| ((i as f32 * 0.37 + seed).sin()) * 0.5).collect()
+}
+
+/// A warmed-up runtime on the test bundle that batches up to 8 jobs.
+pub async fn started_runtime() -> std::sync::Arc<posefuse::runtime::Runtime> {
+    use posefuse::runtime::{Bundle, Runtime, RuntimeConfig};
+    let bundle = std::sync::Arc::new(Bundle::load(&model_dir()).unwrap());
+    let cfg = RuntimeConfig { max_batch: 8, ..RuntimeConfig::default() };
+    let rt = tokio::task::spawn_blocking(move || Runtime::start(bundle, &cfg)).await.unwrap().unwrap();
+    assert!(rt.wait_ready(Duration::from_secs(60)));
+    std::sync::Arc::new(rt)
+}
