@@ -804,6 +804,61 @@ async fn with_a_line_a_full_server_makes_frames_wait_their_turn_before_reading_t
 }
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn an_http1_client_that_hangs_up_while_it_waits_leaves_the_line() {
+    let (s, pause, first) = full_server_with_line(Duration::from_secs(30), 1).await;
+    let admission = s.predictor.admission().clone();
+    let until_in_line = |n: usize, within: Duration| {
+        let admission = admission.clone();
+        async move {
+            let t0 = Instant::now();
+            while admission.in_line() != n {
+                assert!(t0.elapsed() < within, "still {} in line after {within:?}, not {n}", admission.in_line());
+                tokio::time::sleep(Duration::from_millis(5)).await;
+            }
+        }
+    };
+    let abandoned = || async {
+        let page = reqwest::get(s.url("/metrics")).await.unwrap().text().await.unwrap();
+        metric(&page, "posefuse_frames_abandoned_total")
+    };
+    let before = abandoned().await;
+    // A 4 MB body, of which the first 64 KB are sent before the client hangs up: hyper reads none
+    // of a waiting frame's body, so only the socket can tell that its client has gone.
+    let mut big = frame_json();
+    big["frame_id"] = json!("x".repeat(4 << 20));
+    let body = serde_json::to_vec(&big).unwrap();
+    let mut c = TcpStream::connect(s.addr).await.unwrap();
+    let head = format!(
+        "POST /v1/poses HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
+        body.len()
+    );
+    c.write_all(head.as_bytes()).await.unwrap();
+    c.write_all(&body[..64 << 10]).await.unwrap();
+    until_in_line(1, Duration::from_secs(5)).await;
+    // The line (of one) is full: a frame is refused at once.
+    let r = reqwest::Client::new().post(s.url("/v1/poses")).json(&frame_json()).send().await.unwrap();
+    assert_eq!(r.status().as_u16(), 429);
+    drop(c);
+    // Seen within a second, not at the end of its 30 s wait or at its turn.
+    until_in_line(0, Duration::from_secs(1)).await;
+    assert_eq!(abandoned().await, before + 1.0);
+    // Its place in the line is free for a client that stays.
+    let stays = {
+        let (url, body) = (s.url("/v1/poses"), frame_json());
+        tokio::spawn(
+            async move { reqwest::Client::new().post(url).json(&body).send().await.map(|r| r.status().as_u16()) },
+        )
+    };
+    until_in_line(1, Duration::from_secs(5)).await;
+    tokio::time::sleep(Duration::from_millis(200)).await;
+    assert_eq!(admission.in_line(), 1, "a client that stays is not taken for gone");
+    drop(pause);
+    assert_eq!(first.await.unwrap().unwrap(), 200);
+    assert_eq!(stays.await.unwrap().unwrap(), 200);
+    s.shutdown().await.unwrap();
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_wait_in_the_line_that_ends_is_a_429() {
     let (s, pause, first) = full_server_with_line(Duration::from_millis(300), 4).await;
     let t0 = Instant::now();

@@ -8,6 +8,7 @@
 //! the drain deadline whatever is left is cut.
 
 use std::collections::HashMap;
+use std::os::fd::AsRawFd;
 use std::pin::Pin;
 use std::sync::atomic::{AtomicU64, AtomicUsize, Ordering};
 use std::sync::{Arc, Mutex, OnceLock};
@@ -22,6 +23,8 @@ use tokio::net::{TcpListener, TcpStream};
 use tokio::sync::Notify;
 use tokio::task::JoinSet;
 use tokio_util::sync::CancellationToken;
+
+use super::peer::Peer;
 
 /// Connection limits (flags of `posefuse serve`).
 #[derive(Debug, Clone)]
@@ -308,6 +311,15 @@ pub async fn serve(
     report
 }
 
+/// Marks a connection's [`Peer`] closed when the connection ends.
+struct Closing(Arc<Peer>);
+
+impl Drop for Closing {
+    fn drop(&mut self) {
+        self.0.closed();
+    }
+}
+
 async fn serve_one<S>(
     stream: TcpStream,
     handle: Arc<ConnHandle>,
@@ -324,9 +336,12 @@ async fn serve_one<S>(
     S::Error: Into<Box<dyn std::error::Error + Send + Sync>> + Send + Sync + 'static,
 {
     let busy = handle.clone();
-    let counted = tower::service_fn(move |req| {
+    let peer = Peer::new(stream.as_raw_fd());
+    let on_request = peer.clone();
+    let counted = tower::service_fn(move |mut req: axum::http::Request<hyper::body::Incoming>| {
         let mut svc = svc.clone();
         let busy = busy.clone();
+        req.extensions_mut().insert(on_request.clone());
         busy.busy.fetch_add(1, Ordering::Relaxed);
         async move {
             let r = tower::ServiceExt::ready(&mut svc).await;
@@ -342,6 +357,9 @@ async fn serve_one<S>(
     let io = TokioIo::new(Tracked { inner: stream, handle: handle.clone() });
     let conn = builder.serve_connection_with_upgrades(io, TowerToHyperService::new(counted));
     tokio::pin!(conn);
+    // Dropped before `conn` (and its socket): a request still holding `peer` never asks about a
+    // closed descriptor.
+    let _closing = Closing(peer);
     let mut draining = false;
     loop {
         let quiet_for = Duration::from_millis(handle.idle_ms());

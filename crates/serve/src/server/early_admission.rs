@@ -8,13 +8,15 @@
 use std::sync::Arc;
 
 use axum::extract::Request;
-use axum::http::{header, Extensions, Method};
+use axum::http::{header, Extensions, Method, Version};
 use axum::response::{IntoResponse, Response};
 use futures::StreamExt;
 
 use super::errors::{self, HttpError};
+use super::peer::Peer;
 use super::request_context::RouteLabel;
 use crate::service::admission::{Admission, Ticket};
+use posefuse_core::error::Error;
 
 /// The frame route a request is on, for the shape of its refusal.
 #[derive(Debug, Clone, Copy, PartialEq, Eq)]
@@ -72,9 +74,11 @@ pub async fn admit(
     body_limit: usize,
 ) -> Result<Request, Box<Response>> {
     let Some(route) = frame_route(req.method(), req.uri().path(), grpc) else { return Ok(req) };
-    match admission.admit_in_line().await {
+    // HTTP/2 and gRPC callers that go away drop the whole request instead.
+    let peer = req.extensions().get::<Arc<Peer>>().filter(|_| req.version() <= Version::HTTP_11).cloned();
+    match admit_while_the_client_waits(admission, peer).await {
         Ok(ticket) => {
-            req.extensions_mut().insert(Arc::new(ticket));
+            req.extensions_mut().insert(ticket);
             Ok(req)
         }
         Err(e) => {
@@ -92,6 +96,24 @@ pub async fn admit(
             };
             refusal.extensions_mut().insert(RouteLabel(label));
             Err(Box::new(refusal))
+        }
+    }
+}
+
+/// A place for a frame, waiting in the line if there is one; given up when the client on `peer`
+/// hangs up meanwhile.
+async fn admit_while_the_client_waits(
+    admission: &Arc<Admission>,
+    peer: Option<Arc<Peer>>,
+) -> Result<Arc<Ticket>, Error> {
+    let Some(peer) = peer else { return admission.admit_in_line().await.map(Arc::new) };
+    // Biased: a frame that gets its place (or its refusal) at once never asks the socket.
+    tokio::select! {
+        biased;
+        admitted = admission.admit_in_line() => admitted.map(Arc::new),
+        () = peer.until_hung_up() => {
+            metrics::counter!("posefuse_frames_abandoned_total").increment(1);
+            Err(Error::Unavailable("the client hung up while its frame waited for admission".into()))
         }
     }
 }

@@ -14,6 +14,7 @@ pub mod kserve;
 pub mod lifecycle;
 pub mod memory;
 pub mod metrics;
+pub mod peer;
 pub mod reload;
 pub mod request_context;
 pub mod viewer;
