@@ -603,6 +603,14 @@ async fn read_response(stream: &mut TcpStream) -> (u16, Vec<u8>) {
     (status, buf[head_end..head_end + len].to_vec())
 }
 
+/// The test server's configuration with no waiting line (`--admission-wait-ms 0`): a frame that
+/// finds the server full is refused at once.
+fn without_line() -> posefuse::server::ServerConfig {
+    let mut cfg = config();
+    cfg.admission_line = posefuse::service::admission::Line::OFF;
+    cfg
+}
+
 /// A server with room for one frame, and that one frame in it: admitted, its inference paused.
 /// Returns the server, the pause (drop it to let the frame finish) and the frame's answer.
 async fn full_server(
@@ -628,7 +636,7 @@ async fn full_server(
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_refused_request_gets_its_429_early_and_its_connection_stays_usable() {
-    let (s, pause, first) = full_server(config()).await;
+    let (s, pause, first) = full_server(without_line()).await;
     // A 4 MB body, of which only the first 64 KB are sent before the answer is read.
     let mut big = frame_json();
     big["frame_id"] = json!("x".repeat(4 << 20));
@@ -660,7 +668,7 @@ async fn a_refused_request_gets_its_429_early_and_its_connection_stays_usable() 
 
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_refused_body_is_read_no_further_than_the_body_limit() {
-    let mut cfg = config();
+    let mut cfg = without_line();
     cfg.body_limit = 1 << 20;
     let (s, pause, first) = full_server(cfg).await;
     // 8 MB declared, 8 times the limit: refused at once, then read only up to the limit
@@ -693,7 +701,7 @@ async fn every_transport_refuses_a_frame_before_reading_it_when_the_server_is_fu
     use posefuse::server::kserve::grpc::proto::{
         grpc_inference_service_client::GrpcInferenceServiceClient, ModelInferRequest,
     };
-    let (s, pause, first) = full_server(config()).await;
+    let (s, pause, first) = full_server(without_line()).await;
     let http = reqwest::Client::new();
     // Bodies that would be 400 if they were read: the 429 shows they were not.
     for path in ["/v1/poses", "/v2/models/default/infer", "/v2/models/default/versions/9/infer"] {

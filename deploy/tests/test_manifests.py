@@ -266,6 +266,8 @@ def worst_case_memory(container: dict) -> dict[str, float]:
     waiting = int(env["POSEFUSE_ADMISSION_QUEUE"])
     body = int(env["POSEFUSE_BODY_LIMIT"])
     assert permits > 0 and waiting > 0 and body > 0, "0 would size them from the node's cores"
+    # The server keeps a waiting line by default; what its frames hold is not in this arithmetic.
+    assert env.get("POSEFUSE_ADMISSION_WAIT_MS") == "0", "the waiting line must be off (stated) here"
     persons = int(
         env.get("POSEFUSE_MAX_PERSONS")
         or rust_const("crates/serve/src/service/predict.rs", r"MAX_PERSONS: usize = ([\d_]+)")

@@ -168,12 +168,13 @@ pub struct ServeArgs {
     #[arg(long, env = "POSEFUSE_ADMISSION_QUEUE", default_value_t = 0)]
     pub admission_queue: usize,
     /// Milliseconds a frame that finds the server full may wait for a place, before its body is
-    /// read, in order of arrival; 429 when the wait is over (0: 429 at once). Makes admission
-    /// fair to clients that wait `Retry-After` (docs/OPERATIONS.md, "Admission and overload").
-    #[arg(long, env = "POSEFUSE_ADMISSION_WAIT_MS", default_value_t = 0)]
+    /// read, in order of arrival; 429 when the wait is over (0: no line, 429 at once). Makes
+    /// admission fair to clients that wait `Retry-After` (docs/OPERATIONS.md, "Admission and
+    /// overload").
+    #[arg(long, env = "POSEFUSE_ADMISSION_WAIT_MS", default_value_t = Line::DEFAULT.wait.as_millis() as u64)]
     pub admission_wait_ms: u64,
-    /// Frames that may wait at once for a place when `--admission-wait-ms` is set; beyond, 429 at once.
-    #[arg(long, env = "POSEFUSE_ADMISSION_WAITERS", default_value_t = Line::MAX_WAITERS)]
+    /// Frames that may wait at once for a place in the line; beyond, 429 at once.
+    #[arg(long, env = "POSEFUSE_ADMISSION_WAITERS", default_value_t = Line::DEFAULT.max)]
     pub admission_waiters: usize,
     /// Persons per frame at most (422 beyond).
     #[arg(long, env = "POSEFUSE_MAX_PERSONS", default_value_t = FrameLimits::DEFAULT.max_persons)]
@@ -481,9 +482,12 @@ mod tests {
         let line =
             |args: &[&str]| Serve::try_parse_from(args).map(|a| a.serve.server_config().map(|c| c.admission_line));
         let default = line(&["x"]).unwrap().unwrap();
-        assert_eq!(default, Line { wait: Duration::ZERO, max: Line::MAX_WAITERS }, "off by default");
-        let set = line(&["x", "--admission-wait-ms", "2000", "--admission-waiters", "64"]).unwrap().unwrap();
-        assert_eq!(set, Line { wait: Duration::from_secs(2), max: 64 });
+        assert_eq!(default, Line { wait: Duration::from_secs(2), max: 256 }, "on by default");
+        assert_eq!(default, ServerConfig::new("m").admission_line, "one default");
+        let set = line(&["x", "--admission-wait-ms", "500", "--admission-waiters", "64"]).unwrap().unwrap();
+        assert_eq!(set, Line { wait: Duration::from_millis(500), max: 64 });
+        let off = line(&["x", "--admission-wait-ms", "0"]).unwrap().unwrap();
+        assert_eq!(off.wait, Duration::ZERO);
     }
 
     #[derive(Parser)]

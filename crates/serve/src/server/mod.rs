@@ -100,7 +100,7 @@ impl ServerConfig {
             conn: conn::ConnLimits::default(),
             decode_permits: 2,
             admission_queue: 64,
-            admission_line: admission::Line::OFF,
+            admission_line: admission::Line::DEFAULT,
             frame_limits: FrameLimits::default(),
             heading_model_dir: None,
             heading_agree_deg: crate::service::heading_stage::AGREE_DEG,

@@ -19,7 +19,7 @@ pub struct Peer {
 
 impl Peer {
     /// How often a waiting frame asks.
-    pub const EVERY: Duration = Duration::from_millis(50);
+    pub const EVERY: Duration = Duration::from_millis(100);
 
     pub(super) fn new(fd: RawFd) -> Arc<Peer> {
         Arc::new(Peer { fd: Mutex::new(Some(fd)) })
