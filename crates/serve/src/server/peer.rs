@@ -51,8 +51,9 @@ fn peer_closed(fd: RawFd) -> bool {
     let mut p = libc::pollfd { fd, events: libc::POLLRDHUP, revents: 0 };
     // SAFETY: poll reads and writes the one struct passed; a zero timeout never blocks. The
     // caller holds the lock that keeps `fd` open.
-    let n = unsafe { libc::poll(&mut p, 1, 0) };
-    n > 0 && p.revents & (libc::POLLRDHUP | libc::POLLHUP | libc::POLLERR | libc::POLLNVAL) != 0
+    // Asked only for POLLRDHUP, poll reports the socket only with POLLRDHUP or one of POLLHUP,
+    // POLLERR and POLLNVAL (never masked), each of which means the client is gone.
+    unsafe { libc::poll(&mut p, 1, 0) > 0 }
 }
 
 /// Without `POLLRDHUP` a waiting HTTP/1 client that hangs up is noticed at its turn.
@@ -85,6 +86,15 @@ mod tests {
         tokio::time::timeout(Duration::from_secs(2), peer.until_hung_up()).await.expect("the hang-up was not seen");
         peer.closed();
         assert!(peer.hung_up());
+    }
+
+    #[tokio::test]
+    async fn a_connection_the_server_closes_counts_as_gone() {
+        let (_client, server) = pair().await;
+        let peer = Peer::new(server.as_raw_fd());
+        assert!(!peer.hung_up());
+        peer.closed();
+        assert!(peer.hung_up(), "a closed connection has nobody waiting on it");
     }
 
     #[tokio::test]
