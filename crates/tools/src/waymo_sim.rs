@@ -86,7 +86,7 @@ impl WaymoSimOptions {
             speed_mps: 15.0,
             keypoint_fraction: 0.35,
             alt_types: false,
-            profile: Profile::Clean,
+            profile: Profile::default(),
             frames_per_row_group: 4,
             jobs: None,
         }

@@ -53,8 +53,9 @@ pub struct SimulateOptions {
     pub requests: Option<usize>,
     /// Most in-box points kept per sample in `points_xyz`/`points_uv` (P in docs/DATA.md).
     pub points_cap: usize,
-    /// `clean` (tight clothing, empty hands, clean returns) or `street` (loose clothing, things in
-    /// hand, mixed-pixel LiDAR returns at silhouette edges).
+    /// `clean` (tight clothing, empty hands, clean returns), `street` (loose clothing, things in
+    /// hand, mixed-pixel LiDAR returns at silhouette edges) or `street-hard` (`street` and the
+    /// effects that bring the LiDAR toward Waymo's; the CLI's default).
     pub profile: street::Profile,
     /// Realism effects added to the profile's own (docs/DATA.md, "Realism against Waymo's anchors").
     pub effects: Vec<realism::Effect>,

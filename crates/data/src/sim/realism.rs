@@ -79,6 +79,7 @@ mod tests {
     #[test]
     fn a_profile_is_its_effects_and_extras_add_to_them() {
         assert!(Realism::from(Profile::Clean).effects().is_empty());
+        assert_eq!(Profile::default(), Profile::StreetHard, "the library's default is the CLI's");
         assert_eq!(Realism::from(Profile::Street).effects(), [Effect::Dress, Effect::MixedPixels]);
         let r = Realism::of(Profile::Street, &[Effect::LabelNoise, Effect::Footprint, Effect::Footprint]);
         assert_eq!(r.effects(), [Effect::Dress, Effect::MixedPixels, Effect::Footprint, Effect::LabelNoise]);

@@ -12,13 +12,13 @@ use super::poses::{Activity, PersonModel, Slot};
 use super::raycast::Shape;
 use super::realism::Effect;
 
-/// How much of the street's mess the simulator renders (`posefuse simulate --profile`).
+/// How much of the street's mess the simulator renders (`posefuse simulate --profile`). The
+/// default is the CLI's: `street-hard`, the profile the default bundle is trained on.
 #[derive(Debug, Clone, Copy, PartialEq, Eq, Default, serde::Serialize)]
 #[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 #[serde(rename_all = "lowercase")]
 pub enum Profile {
     /// Tight clothing, empty hands except the activity's own objects, clean first returns.
-    #[default]
     Clean,
     /// Loose jackets and coats, hand-held items and shoulder bags, mixed-pixel LiDAR returns.
     Street,
@@ -26,6 +26,7 @@ pub enum Profile {
     /// (docs/DATA.md, "Realism against Waymo's anchors"): arms against the torso, dark surfaces
     /// dropping out, and 3D label noise.
     #[serde(rename = "street-hard")]
+    #[default]
     StreetHard,
 }
 
