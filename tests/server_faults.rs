@@ -634,20 +634,41 @@ async fn full_server(
     (s, pause, first)
 }
 
+/// A frame of 4 MB (a long `frame_id`) for `POST /v1/poses` over a raw connection: its head and body.
+fn big_frame_post() -> (String, Vec<u8>) {
+    let mut big = frame_json();
+    big["frame_id"] = json!("x".repeat(4 << 20));
+    let body = serde_json::to_vec(&big).unwrap();
+    let head = format!(
+        "POST /v1/poses HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
+        body.len()
+    );
+    (head, body)
+}
+
+/// A connection that has sent `head` and the first 64 KB of `body`.
+async fn begin_post(s: &TestServer, head: &str, body: &[u8]) -> TcpStream {
+    let mut c = TcpStream::connect(s.addr).await.unwrap();
+    c.write_all(head.as_bytes()).await.unwrap();
+    c.write_all(&body[..64 << 10]).await.unwrap();
+    c
+}
+
+/// Waits until `n` frames are in the admission line, failing after `within`.
+async fn until_in_line(admission: &posefuse::service::admission::Admission, n: usize, within: Duration) {
+    let t0 = Instant::now();
+    while admission.in_line() != n {
+        assert!(t0.elapsed() < within, "still {} in line after {within:?}, not {n}", admission.in_line());
+        tokio::time::sleep(Duration::from_millis(5)).await;
+    }
+}
+
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn a_refused_request_gets_its_429_early_and_its_connection_stays_usable() {
     let (s, pause, first) = full_server(without_line()).await;
     // A 4 MB body, of which only the first 64 KB are sent before the answer is read.
-    let mut big = frame_json();
-    big["frame_id"] = json!("x".repeat(4 << 20));
-    let big = serde_json::to_vec(&big).unwrap();
-    let mut c = TcpStream::connect(s.addr).await.unwrap();
-    let head = format!(
-        "POST /v1/poses HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
-        big.len()
-    );
-    c.write_all(head.as_bytes()).await.unwrap();
-    c.write_all(&big[..64 << 10]).await.unwrap();
+    let (head, big) = big_frame_post();
+    let mut c = begin_post(&s, &head, &big).await;
     let (status, body) = read_response(&mut c).await;
     assert_eq!(status, 429, "{}", String::from_utf8_lossy(&body));
     // The rest of the body is taken (not a reset), and the same connection serves the next request.
@@ -755,16 +776,7 @@ async fn with_a_line_a_full_server_makes_frames_wait_their_turn_before_reading_t
     use posefuse::server::grpc::proto::posefuse_client::PosefuseClient;
     let (s, pause, first) = full_server_with_line(Duration::from_secs(20), 3).await;
     let admission = s.predictor.admission().clone();
-    let until_in_line = |n: usize| {
-        let admission = admission.clone();
-        async move {
-            let t0 = Instant::now();
-            while admission.in_line() != n {
-                assert!(t0.elapsed() < Duration::from_secs(5), "never {n} in line");
-                tokio::time::sleep(Duration::from_millis(5)).await;
-            }
-        }
-    };
+    let until_in_line = |n: usize| until_in_line(&admission, n, Duration::from_secs(5));
     let waiter = {
         let (url, body) = (s.url("/v1/poses"), frame_json());
         tokio::spawn(async move {
@@ -815,16 +827,7 @@ async fn with_a_line_a_full_server_makes_frames_wait_their_turn_before_reading_t
 async fn an_http1_client_that_hangs_up_while_it_waits_leaves_the_line() {
     let (s, pause, first) = full_server_with_line(Duration::from_secs(30), 1).await;
     let admission = s.predictor.admission().clone();
-    let until_in_line = |n: usize, within: Duration| {
-        let admission = admission.clone();
-        async move {
-            let t0 = Instant::now();
-            while admission.in_line() != n {
-                assert!(t0.elapsed() < within, "still {} in line after {within:?}, not {n}", admission.in_line());
-                tokio::time::sleep(Duration::from_millis(5)).await;
-            }
-        }
-    };
+    let until_in_line = |n: usize, within: Duration| until_in_line(&admission, n, within);
     let abandoned = || async {
         let page = reqwest::get(s.url("/metrics")).await.unwrap().text().await.unwrap();
         metric(&page, "posefuse_frames_abandoned_total")
@@ -832,16 +835,8 @@ async fn an_http1_client_that_hangs_up_while_it_waits_leaves_the_line() {
     let before = abandoned().await;
     // A 4 MB body, of which the first 64 KB are sent before the client hangs up: hyper reads none
     // of a waiting frame's body, so only the socket can tell that its client has gone.
-    let mut big = frame_json();
-    big["frame_id"] = json!("x".repeat(4 << 20));
-    let body = serde_json::to_vec(&big).unwrap();
-    let mut c = TcpStream::connect(s.addr).await.unwrap();
-    let head = format!(
-        "POST /v1/poses HTTP/1.1\r\nHost: x\r\nContent-Type: application/json\r\nContent-Length: {}\r\n\r\n",
-        body.len()
-    );
-    c.write_all(head.as_bytes()).await.unwrap();
-    c.write_all(&body[..64 << 10]).await.unwrap();
+    let (head, body) = big_frame_post();
+    let c = begin_post(&s, &head, &body).await;
     until_in_line(1, Duration::from_secs(5)).await;
     // The line (of one) is full: a frame is refused at once.
     let r = reqwest::Client::new().post(s.url("/v1/poses")).json(&frame_json()).send().await.unwrap();
