@@ -8,7 +8,6 @@ use std::sync::atomic::{AtomicUsize, Ordering};
 use std::sync::Arc;
 use std::time::{Duration, Instant};
 
-use posefuse::frame::{Frame, Person, Points, RequestedMode};
 use serde_json::{json, Value};
 use server_support::process::ServeProcess;
 use server_support::*;
@@ -312,26 +311,6 @@ async fn out_of_file_descriptors_accept_backs_off_and_the_server_recovers() {
     // About one failed accept per 50 ms pause over the 2.3 s: the loop hit the limit and waited.
     assert!((5.0..=200.0).contains(&errors), "{errors} accept errors");
     assert!(s.ready());
-}
-
-/// A frame whose pre-processing is long: many persons, each scanning many points and each with
-/// its own crop (boxes a few millimetres apart: identical windows would share one).
-fn heavy_frame(persons: usize, points: usize) -> Frame {
-    let b = person_box(8.0, 0.5);
-    let mut pts = points_in(&b, 300);
-    pts.extend((0..points).map(|i| [30.0 + (i % 1000) as f32 * 0.01, 5.0 + (i / 1000) as f32 * 0.01, 0.5]));
-    Frame {
-        frame_id: Some("heavy".into()),
-        image: Some(image_b64(&[box_2d(&b)])),
-        image_rgb: None,
-        calibration: Some(calibration()),
-        cameras: Vec::new(),
-        points: Points::encode(&pts),
-        persons: (0..persons)
-            .map(|i| Person { id: format!("p{i}"), ..person("p", person_box(8.0, 0.5 + i as f64 * 0.002), true) })
-            .collect(),
-        mode: RequestedMode::Auto,
-    }
 }
 
 /// The server's CPU seconds in the second after a request ends (with 150 ms for the step in hand).
@@ -845,6 +824,14 @@ async fn an_http1_client_that_hangs_up_while_it_waits_leaves_the_line() {
     // Seen within a second, not at the end of its 30 s wait or at its turn.
     until_in_line(0, Duration::from_secs(1)).await;
     assert_eq!(abandoned().await, before + 1.0);
+    // Logged and counted as the client's doing (nginx's 499), not as a server error.
+    let page = reqwest::get(s.url("/metrics")).await.unwrap().text().await.unwrap();
+    let gone = r#"posefuse_request_duration_seconds_count{transport="http",route="/v1/poses",status="499"}"#;
+    assert_eq!(metric(&page, gone), 1.0, "{page}");
+    assert_eq!(
+        metric(&page, r#"posefuse_request_duration_seconds_count{transport="http",route="/v1/poses",status="503"}"#),
+        0.0
+    );
     // Its place in the line is free for a client that stays.
     let stays = {
         let (url, body) = (s.url("/v1/poses"), frame_json());

@@ -4,6 +4,7 @@
 mod server_support;
 
 use std::collections::BTreeSet;
+use std::time::{Duration, Instant};
 
 use posefuse::server::grpc::frame_to_proto;
 use posefuse::server::grpc::proto::posefuse_client::PosefuseClient;
@@ -162,4 +163,50 @@ async fn each_request_has_one_access_log_line_carrying_its_id() {
         assert!(f["duration_ms"].as_f64().is_some_and(|d| d > 0.0), "{f}");
         assert_eq!(mine[0]["level"], "INFO");
     }
+}
+
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn a_request_whose_client_goes_away_is_logged_as_499_or_cancelled() {
+    let dir = tempfile::tempdir().unwrap();
+    let log = dir.path().join("serve.log");
+    let s = ServeProcess::start_logging(&["--log-json"], &log);
+    // Seconds of pre-processing: the clients are gone long before an answer.
+    let heavy = heavy_frame(256, 200_000);
+    let body = serde_json::to_value(&heavy).unwrap();
+    let http = reqwest::Client::new().post(s.url("/v1/poses")).header("x-request-id", "gone-http").json(&body);
+    assert!(tokio::time::timeout(Duration::from_millis(300), http.send()).await.is_err(), "answered too soon");
+    let mut c = PosefuseClient::connect(s.url("")).await.unwrap();
+    let mut req = tonic::Request::new(frame_to_proto(&heavy, Vec::new()).unwrap());
+    req.metadata_mut().insert("x-request-id", "gone-grpc".parse().unwrap());
+    assert!(tokio::time::timeout(Duration::from_millis(300), c.predict(req)).await.is_err(), "answered too soon");
+    drop(c);
+    // The server notices each hang-up at its next step, then writes the line.
+    let t = Instant::now();
+    let page = loop {
+        tokio::time::sleep(Duration::from_millis(200)).await;
+        let page = reqwest::get(s.url("/metrics")).await.unwrap().text().await.unwrap();
+        if page.contains(r#"status="CANCELLED""#) && page.contains(r#"status="499""#) {
+            break page;
+        }
+        assert!(t.elapsed() < Duration::from_secs(30), "no line for the hung-up requests:\n{page}");
+    };
+    for gone in [
+        r#"posefuse_request_duration_seconds_count{transport="http",route="/v1/poses",status="499"} 1"#,
+        r#"posefuse_request_duration_seconds_count{transport="grpc",route="/posefuse.v1.Posefuse/Predict",status="CANCELLED"} 1"#,
+    ] {
+        assert!(page.lines().any(|l| l == gone), "{gone} missing:\n{page}");
+    }
+    assert!(!page.contains(r#"route="/v1/poses",status="503""#), "{page}");
+    drop(s);
+    let text = std::fs::read_to_string(&log).unwrap();
+    let lines: Vec<Value> = text.lines().map(|l| serde_json::from_str(l).unwrap()).collect();
+    for (id, transport, status) in [("gone-http", "http", "499"), ("gone-grpc", "grpc", "CANCELLED")] {
+        let mine: Vec<&Value> =
+            lines.iter().filter(|l| l["target"] == "posefuse::access" && l["span"]["request_id"] == id).collect();
+        assert_eq!(mine.len(), 1, "{id}: {mine:?}\n{text}");
+        let f = &mine[0]["fields"];
+        assert_eq!((f["transport"].as_str(), f["status"].as_str()), (Some(transport), Some(status)), "{f}");
+    }
+    // Nothing about them at error level: the server did not fail.
+    assert!(!lines.iter().any(|l| l["level"] == "ERROR"), "{text}");
 }

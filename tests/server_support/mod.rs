@@ -267,3 +267,23 @@ pub async fn started_runtime() -> std::sync::Arc<posefuse::runtime::Runtime> {
     assert!(rt.wait_ready(Duration::from_secs(60)));
     std::sync::Arc::new(rt)
 }
+
+/// A frame whose pre-processing is long: many persons, each scanning many points and each with
+/// its own crop (boxes a few millimetres apart: identical windows would share one).
+pub fn heavy_frame(persons: usize, points: usize) -> Frame {
+    let b = person_box(8.0, 0.5);
+    let mut pts = points_in(&b, 300);
+    pts.extend((0..points).map(|i| [30.0 + (i % 1000) as f32 * 0.01, 5.0 + (i / 1000) as f32 * 0.01, 0.5]));
+    Frame {
+        frame_id: Some("heavy".into()),
+        image: Some(image_b64(&[box_2d(&b)])),
+        image_rgb: None,
+        calibration: Some(calibration()),
+        cameras: Vec::new(),
+        points: Points::encode(&pts),
+        persons: (0..persons)
+            .map(|i| Person { id: format!("p{i}"), ..person("p", person_box(8.0, 0.5 + i as f64 * 0.002), true) })
+            .collect(),
+        mode: RequestedMode::Auto,
+    }
+}

@@ -35,6 +35,10 @@ pub enum Error {
     /// The server is not ready (bundle not loaded or warming up) or is shutting down.
     #[error("not ready: {0}")]
     Unavailable(String),
+    /// The client went away before its answer was ready; nobody reads what is sent, but the
+    /// access log and the metrics tell it from the server's own failures.
+    #[error("client closed the request: {0}")]
+    ClientGone(String),
     /// A model bundle is missing, inconsistent or does not match its manifest.
     #[error("model bundle: {0}")]
     Bundle(String),
@@ -88,6 +92,7 @@ impl Error {
             Error::Forbidden(_) => "forbidden",
             Error::Timeout(_) => "timeout",
             Error::Unavailable(_) => "unavailable",
+            Error::ClientGone(_) => "client_closed_request",
             Error::Bundle(_) => "bundle_error",
             Error::Runtime(_) => "runtime_error",
             Error::Io(_) => "io_error",

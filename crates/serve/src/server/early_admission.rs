@@ -32,7 +32,7 @@ pub enum FrameRoute {
 impl FrameRoute {
     /// The route's label in the access log and the latency metric: the router's pattern, which
     /// the refused request never reached (gRPC: the method's path).
-    fn label(self, path: &str) -> String {
+    pub fn label(self, path: &str) -> String {
         match self {
             FrameRoute::Native => "/v1/poses".into(),
             FrameRoute::KserveRest if path.contains("/versions/") => {
@@ -113,7 +113,7 @@ async fn admit_while_the_client_waits(
         admitted = admission.admit_in_line() => admitted.map(Arc::new),
         () = peer.until_hung_up() => {
             metrics::counter!("posefuse_frames_abandoned_total").increment(1);
-            Err(Error::Unavailable("the client hung up while its frame waited for admission".into()))
+            Err(Error::ClientGone("it hung up while its frame waited for admission".into()))
         }
     }
 }

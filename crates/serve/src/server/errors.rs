@@ -6,6 +6,13 @@ use axum::response::{IntoResponse, Response};
 use crate::service::api::{ErrorBody, ErrorDetail};
 use posefuse_core::error::Error;
 
+/// nginx's status for a client that closed its connection before the answer: not a server error,
+/// so 5xx alerts stay quiet. Nobody receives it; the access log and the latency metric do.
+pub const CLIENT_CLOSED_REQUEST: StatusCode = match StatusCode::from_u16(499) {
+    Ok(s) => s,
+    Err(_) => StatusCode::BAD_REQUEST,
+};
+
 /// HTTP status of an error.
 pub fn http_status(e: &Error) -> StatusCode {
     match e {
@@ -17,6 +24,7 @@ pub fn http_status(e: &Error) -> StatusCode {
         Error::Forbidden(_) => StatusCode::FORBIDDEN,
         Error::Timeout(_) => StatusCode::GATEWAY_TIMEOUT,
         Error::Unavailable(_) => StatusCode::SERVICE_UNAVAILABLE,
+        Error::ClientGone(_) => CLIENT_CLOSED_REQUEST,
         Error::Bundle(_) | Error::Runtime(_) | Error::Io(_) => StatusCode::INTERNAL_SERVER_ERROR,
     }
 }
@@ -31,6 +39,7 @@ pub fn grpc_code(e: &Error) -> tonic::Code {
         Error::Forbidden(_) => tonic::Code::PermissionDenied,
         Error::Timeout(_) => tonic::Code::DeadlineExceeded,
         Error::Unavailable(_) => tonic::Code::Unavailable,
+        Error::ClientGone(_) => tonic::Code::Cancelled,
         Error::Bundle(_) | Error::Runtime(_) | Error::Io(_) => tonic::Code::Internal,
     }
 }
@@ -126,6 +135,7 @@ mod tests {
             (Error::Timeout(5), 504, tonic::Code::DeadlineExceeded),
             (Error::Forbidden("admin".into()), 403, tonic::Code::PermissionDenied),
             (Error::Unavailable("warming up".into()), 503, tonic::Code::Unavailable),
+            (Error::ClientGone("hung up".into()), 499, tonic::Code::Cancelled),
             (Error::Runtime("x".into()), 500, tonic::Code::Internal),
         ];
         for (e, http, grpc) in cases {

@@ -178,30 +178,64 @@ pub async fn trace_request(req: Request, next: Next) -> axum::response::Response
     let id = request_id(req.headers(), || trace.trace_id_hex());
     span.record("request_id", id.as_str());
     span.record("trace_id", trace.trace_id_hex().as_str());
-    let mut resp = next.run(req).instrument(span.clone()).await;
-    let (route, status) = outcome(&resp, grpc, &path);
+    let mut unanswered = Unanswered(Some(Access { t0, grpc, method, path, span: span.clone() }));
+    let mut resp = next.run(req).instrument(span).await;
+    let Some(access) = unanswered.0.take() else { return resp };
+    let (route, status) = outcome(&resp, grpc, &access.path);
     if let Ok(v) = HeaderValue::from_str(&id) {
         resp.headers_mut().insert(REQUEST_ID, v);
     }
     if let Ok(v) = HeaderValue::from_str(&trace.traceparent()) {
         resp.headers_mut().insert(TRACEPARENT, v);
     }
-    let secs = t0.elapsed().as_secs_f64();
-    let transport = if grpc { "grpc" } else { "http" };
-    metrics::histogram!("posefuse_request_duration_seconds", "transport" => transport, "route" => route, "status" => status.clone())
-        .record(secs);
-    span.in_scope(|| {
-        tracing::info!(
-            target: "posefuse::access",
-            transport,
-            method = %method,
-            path,
-            status,
-            duration_ms = secs * 1e3,
-            "answered"
-        )
-    });
+    access.record(route, status);
     resp
+}
+
+/// What one access-log line and its latency sample need to know of a request.
+struct Access {
+    t0: Instant,
+    grpc: bool,
+    method: axum::http::Method,
+    path: String,
+    span: tracing::Span,
+}
+
+impl Access {
+    fn record(self, route: String, status: String) {
+        let secs = self.t0.elapsed().as_secs_f64();
+        let transport = if self.grpc { "grpc" } else { "http" };
+        metrics::histogram!("posefuse_request_duration_seconds", "transport" => transport, "route" => route, "status" => status.clone())
+            .record(secs);
+        self.span.in_scope(|| {
+            tracing::info!(
+                target: "posefuse::access",
+                transport,
+                method = %self.method,
+                path = self.path,
+                status,
+                duration_ms = secs * 1e3,
+                "answered"
+            )
+        });
+    }
+}
+
+/// A request whose client went away before its answer (the connection closed, the HTTP/2
+/// stream reset): hyper drops its future, and with it this guard, which writes its access line
+/// as nginx does, 499 (`CANCELLED` for gRPC), so that it is neither missing from the log nor
+/// counted as a server error. Its route is a frame route's label, or `unmatched`: the router
+/// that would have named it never answered.
+struct Unanswered(Option<Access>);
+
+impl Drop for Unanswered {
+    fn drop(&mut self) {
+        let Some(access) = self.0.take() else { return };
+        let route = super::early_admission::frame_route(&access.method, &access.path, access.grpc)
+            .map_or_else(|| "unmatched".to_string(), |r| r.label(&access.path));
+        let status = if access.grpc { grpc_code_name(tonic::Code::Cancelled).to_string() } else { "499".to_string() };
+        access.record(route, status);
+    }
 }
 
 #[cfg(test)]
