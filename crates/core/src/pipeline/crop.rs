@@ -200,6 +200,11 @@ mod tests {
         let crop = crop_rgb(&img, &t);
         assert_eq!(crop.get_pixel(10, 50).0, [0, 0, 0]);
         assert_eq!(crop.get_pixel(80, 50).0, [10, 200, 30]);
+        // and the same off the top edge
+        let t = CropTransform { x0: 0.0, y0: -50.0, scale: 1.0, size: 100 };
+        let crop = crop_rgb(&img, &t);
+        assert_eq!(crop.get_pixel(50, 10).0, [0, 0, 0]);
+        assert_eq!(crop.get_pixel(50, 80).0, [10, 200, 30]);
         // entirely outside
         let t = CropTransform { x0: 500.0, y0: 500.0, scale: 1.0, size: 16 };
         assert!(crop_rgb(&img, &t).as_raw().iter().all(|&v| v == 0));
