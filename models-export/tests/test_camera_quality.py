@@ -62,9 +62,28 @@ def test_the_command_trains_one_lidar_net_and_a_fusion_net_per_level(synthetic_s
     args = ["--train", str(train), "--test", str(test), "--out", str(out), "--levels", "0:0,0.1:0.5"]
     camera_quality.main([*args, "--heatmap-size", "8", "--smoothing-sigma", "1", "--point-steps", "2"])
     r = json.loads((out / "results.json").read_text())
+    assert r["supervision"] == "pseudo"
     assert [(lv["sigma"], lv["swap"]) for lv in r["levels"]] == [(0.0, 0.0), (0.1, 0.5)]
     for lv in r["levels"]:
         assert set(lv) >= {"camera_only", "fusion", "lidar", "blend"}
         assert 0.0 <= lv["fusion"]["oks_3d"] <= 1.0 and lv["lidar"]["mpjpe_m"] > 0
     exact, rough = (lv["camera_only"]["oks_2d"] for lv in r["levels"])
     assert exact > rough
+    truth = tmp_path / "truth"
+    common = ["--heatmap-size", "8", "--smoothing-sigma", "1", "--point-steps", "2", "--levels", "0:0"]
+    camera_quality.main(
+        ["--train", str(train), "--test", str(test), "--out", str(truth), *common, "--supervision", "truth"]
+    )
+    r = json.loads((truth / "results.json").read_text())
+    assert r["supervision"] == "truth" and len(r["levels"]) == 1
+
+
+def test_truth_labels_are_every_labelled_3d_keypoint_at_weight_one(synthetic_sets):
+    _, test = synthetic_sets
+    d, _, _ = data_mod.load(test)
+    lab = camera_quality.truth_labels(d)
+    known = labelled(d, 3)
+    np.testing.assert_array_equal(lab["visible"], known)
+    np.testing.assert_array_equal(lab["weight"], known.astype(np.float32))
+    np.testing.assert_allclose(lab["kp3d"][known], d["kp3d"][known])
+    assert (lab["kp3d"][~known] == 0).all() and np.isfinite(lab["kp3d"]).all()
