@@ -64,10 +64,12 @@ def synthetic_heatmaps(
     return out
 
 
-def truth_labels(data: dict) -> dict:
+def truth_labels(data: dict, where: np.ndarray | None = None) -> dict:
     """The simulator's 3D keypoints as training labels, in the shape of `labels.pseudo_labels`:
-    every labelled keypoint, weight 1."""
+    every labelled keypoint (or those of them `where` says), weight 1."""
     known = labelled(data, 3) & np.isfinite(data["kp3d"]).all(axis=2)
+    if where is not None:
+        known &= where
     kp3d = np.where(known[..., None], np.nan_to_num(data["kp3d"]), 0.0).astype(np.float32)
     return {"kp3d": kp3d, "weight": known.astype(np.float32), "visible": known}
 
@@ -104,10 +106,11 @@ def main(argv=None):
     p.add_argument("--t-r", type=float, default=200.0)
     p.add_argument(
         "--supervision",
-        choices=["pseudo", "truth"],
+        choices=["pseudo", "truth", "truth-where-pseudo"],
         default="pseudo",
         help="pseudo: the depth-corrected pseudo labels from the 2D labels (the project's way); truth: "
-        "the simulator's 3D keypoints, a diagnostic of what full 3D supervision would allow",
+        "the simulator's 3D keypoints, a diagnostic of what full 3D supervision would allow; "
+        "truth-where-pseudo: the 3D keypoints only where a pseudo label exists (error without gaps)",
     )
     p.add_argument("--limit-train", type=int)
     p.add_argument("--threads", type=int, default=0)
@@ -143,11 +146,11 @@ def main(argv=None):
     def log(msg: str) -> None:
         print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
-    lab = (
-        labels.pseudo_labels(train, cfg, a.t_r, depth_correction=True)
-        if a.supervision == "pseudo"
-        else truth_labels(train)
-    )
+    lab = labels.pseudo_labels(train, cfg, a.t_r, depth_correction=True)
+    if a.supervision == "truth":
+        lab = truth_labels(train)
+    elif a.supervision == "truth-where-pseudo":
+        lab = truth_labels(train, lab["visible"])
 
     def point_net(fusion: bool, heatmaps) -> torch.nn.Module:
         pcfg = TrainPointConfig(

@@ -87,3 +87,8 @@ def test_truth_labels_are_every_labelled_3d_keypoint_at_weight_one(synthetic_set
     np.testing.assert_array_equal(lab["weight"], known.astype(np.float32))
     np.testing.assert_allclose(lab["kp3d"][known], d["kp3d"][known])
     assert (lab["kp3d"][~known] == 0).all() and np.isfinite(lab["kp3d"]).all()
+    some = np.zeros_like(known)
+    some[:, :3] = True
+    part = camera_quality.truth_labels(d, some)
+    np.testing.assert_array_equal(part["visible"], known & some)
+    assert (part["weight"][:, 3:] == 0).all()
