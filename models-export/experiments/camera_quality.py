@@ -19,6 +19,7 @@ from __future__ import annotations
 import argparse
 import dataclasses
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -164,7 +165,7 @@ def main(argv=None):
     lidar = point_net(False, None)
     pred_lidar = predict_points(lidar, test["serve_xyz"], test["serve_uv"], None, cfg)
     results = {
-        "command": " ".join(argv or []),
+        "command": " ".join(sys.argv[1:] if argv is None else argv),
         "supervision": a.supervision,
         "lidar_train_s": time.time() - t,
         "levels": [],
