@@ -139,6 +139,14 @@ def local_to_vehicle(local: np.ndarray, box3d: np.ndarray, frame_yaw: np.ndarray
     return np.stack([x, y, z], axis=2)
 
 
+def vehicle_to_local(vehicle: np.ndarray, box3d: np.ndarray, frame_yaw: np.ndarray) -> np.ndarray:
+    """Vehicle frame [M,K,3] -> model-input coordinates (local_to_vehicle's inverse)."""
+    q = np.asarray(vehicle, np.float64) - np.asarray(box3d, np.float64)[:, None, :3]
+    h = np.asarray(frame_yaw, np.float64).reshape(len(q))
+    c, s = np.cos(h)[:, None], np.sin(h)[:, None]
+    return np.stack([c * q[..., 0] + s * q[..., 1], -s * q[..., 0] + c * q[..., 1], q[..., 2]], axis=2)
+
+
 # Waymo's camera model trusts a projection only inside these radial distortion factors
 # (crates/core/src/geometry/camera.rs, RADIAL_FACTOR_RANGE).
 RADIAL_FACTOR_RANGE = (0.8, 1.2)
@@ -166,3 +174,44 @@ def project(vehicle: np.ndarray, intrinsic: np.ndarray, extrinsic: np.ndarray) -
     uv = np.stack([fu * ud + cu, fv * vd + cv], axis=2)
     valid = front & (radial >= RADIAL_FACTOR_RANGE[0]) & (radial <= RADIAL_FACTOR_RANGE[1])
     return np.where(valid[..., None], uv, np.nan)
+
+
+def _distort(un, vn, k1, k2, p1, p2, k3):
+    r2 = un * un + vn * vn
+    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
+    ud = un * radial + 2.0 * p1 * un * vn + p2 * (r2 + 2.0 * un * un)
+    vd = vn * radial + p1 * (r2 + 2.0 * vn * vn) + 2.0 * p2 * un * vn
+    return ud, vd
+
+
+def unproject(px: np.ndarray, depth: np.ndarray, intrinsic: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
+    """`project`'s inverse: [M,K,2] pixels at [M,K] depths (metres along the camera's optical axis)
+    -> [M,K,3] vehicle points. The lens is inverted by Newton's method, as the server's
+    `Camera::undistort` (crates/core/src/geometry/camera.rs)."""
+    uv = np.asarray(px, np.float64)
+    i = np.asarray(intrinsic, np.float64)
+    fu, fv, cu, cv, k1, k2, p1, p2, k3 = (i[:, j][:, None] for j in range(9))
+    lens = (k1, k2, p1, p2, k3)
+    ud, vd = (uv[..., 0] - cu) / fu, (uv[..., 1] - cv) / fv
+    un, vn = ud.copy(), vd.copy()
+    h = 1e-7
+    for _ in range(20):
+        fu0, fv0 = _distort(un, vn, *lens)
+        ru, rv = fu0 - ud, fv0 - vd
+        a1, b1 = _distort(un + h, vn, *lens)
+        a2, b2 = _distort(un, vn + h, *lens)
+        j11, j21, j12, j22 = (a1 - fu0) / h, (b1 - fv0) / h, (a2 - fu0) / h, (b2 - fv0) / h
+        det = j11 * j22 - j12 * j21
+        det = np.where(np.abs(det) < 1e-12, 1.0, det)
+        un, vn = un - (j22 * ru - j12 * rv) / det, vn - (-j21 * ru + j11 * rv) / det
+    x = np.asarray(depth, np.float64)
+    cam = np.stack([x, -un * x, -vn * x], axis=2)
+    ext = np.asarray(extrinsic, np.float64).reshape(-1, 4, 4)
+    return np.einsum("mij,mkj->mki", ext[:, :3, :3], cam) + ext[:, None, :3, 3]
+
+
+def camera_depth(vehicle: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
+    """[M,3] vehicle points -> [M] depth along each camera's optical axis."""
+    ext = np.asarray(extrinsic, np.float64).reshape(-1, 4, 4)
+    p = np.asarray(vehicle, np.float64) - ext[:, :3, 3]
+    return np.einsum("mj,mj->m", ext[:, :3, 0], p)

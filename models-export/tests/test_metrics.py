@@ -118,3 +118,35 @@ def test_projection_is_nan_where_the_lens_polynomial_folds_back():
     un = -np.tan(bearings[2])
     folded = 960 + 2055 * un * (1 - 0.33 * un**4)
     assert 0 <= folded < 1920
+
+
+def test_unproject_inverts_project_through_a_distorted_lens_and_a_turned_camera():
+    # A camera 1.5 m forward and 2 m up, yawed 10° and pitched 3°, with every lens term set.
+    yaw, pitch = np.radians(10.0), np.radians(3.0)
+    rz = np.array([[np.cos(yaw), -np.sin(yaw), 0], [np.sin(yaw), np.cos(yaw), 0], [0, 0, 1]])
+    ry = np.array([[np.cos(pitch), 0, np.sin(pitch)], [0, 1, 0], [-np.sin(pitch), 0, np.cos(pitch)]])
+    ext = np.eye(4)
+    ext[:3, :3], ext[:3, 3] = rz @ ry, [1.5, 0.0, 2.0]
+    intrinsic = np.array([[2055.0, 2050.0, 950.0, 630.0, -0.05, 0.02, 0.001, -0.002, 0.01]])
+    rng = np.random.default_rng(3)
+    pts = np.stack([rng.uniform(10, 40, 20), rng.uniform(-3, 3, 20), rng.uniform(0, 3, 20)], axis=1)[None]
+    px = metrics.project(pts, intrinsic, ext.reshape(1, 16))
+    assert np.isfinite(px).all()
+    cam_depth = np.einsum("j,kj->k", ext[:3, 0], pts[0] - ext[:3, 3])[None]
+    back = metrics.unproject(px, cam_depth, intrinsic, ext.reshape(1, 16))
+    np.testing.assert_allclose(back, pts, atol=1e-6)
+    np.testing.assert_allclose(metrics.camera_depth(pts[:, 0], ext.reshape(1, 16)), cam_depth[:, 0])
+    # half the depth: the same pixel, half-way to the camera
+    half = metrics.unproject(px, cam_depth / 2, intrinsic, ext.reshape(1, 16))
+    np.testing.assert_allclose(metrics.project(half, intrinsic, ext.reshape(1, 16)), px, atol=1e-6)
+    np.testing.assert_allclose(half, (pts + ext[:3, 3]) / 2, atol=1e-6)
+
+
+def test_vehicle_to_local_inverts_local_to_vehicle():
+    rng = np.random.default_rng(4)
+    local = rng.normal(0, 1, (3, 5, 3))
+    box = np.array([[10.0, -2.0, 0.9, 0.6, 0.7, 1.8, 0.3]] * 3) + rng.normal(0, 1, (3, 7))
+    yaw = rng.uniform(-np.pi, np.pi, 3)
+    vehicle = metrics.local_to_vehicle(local, box, yaw)
+    np.testing.assert_allclose(metrics.vehicle_to_local(vehicle, box, yaw), local, atol=1e-12)
+    assert np.abs(metrics.vehicle_to_local(vehicle, box, yaw + 0.1) - local).max() > 0.01
