@@ -82,6 +82,12 @@ def summary(m: dict) -> dict:
         "oks_2d": m.get("oks_acc_2d"),
         "swaps": m.get("left_right_swap_rate"),
         **{p: part_oks(m, p, "per_keypoint_oks_3d") for p in PARTS},
+        **{
+            f"{b}_{key}": m["breakdown"][b][metric]
+            for b in ("visible", "occluded")
+            for key, metric in (("oks_3d", "oks_acc_3d"), ("mpjpe_m", "mpjpe_3d_m"))
+            if "breakdown" in m
+        },
     }
 
 
@@ -112,6 +118,19 @@ def main(argv=None):
         help="pseudo: the depth-corrected pseudo labels from the 2D labels (the project's way); truth: "
         "the simulator's 3D keypoints, a diagnostic of what full 3D supervision would allow; "
         "truth-where-pseudo: the 3D keypoints only where a pseudo label exists (error without gaps)",
+    )
+    p.add_argument(
+        "--occluded-weight",
+        type=float,
+        default=0.0,
+        help="with pseudo supervision: occluded 2D labels with no point near them get a label on "
+        "their camera ray at the box centre's depth, at this weight (labels.occluded_labels)",
+    )
+    p.add_argument(
+        "--snap-to-rays",
+        action="store_true",
+        help="with pseudo supervision: each pseudo label moved onto its 2D label's camera ray at the "
+        "depth it had (labels.snapped_to_label_rays)",
     )
     p.add_argument("--limit-train", type=int)
     p.add_argument("--threads", type=int, default=0)
@@ -147,7 +166,9 @@ def main(argv=None):
     def log(msg: str) -> None:
         print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
-    lab = labels.pseudo_labels(train, cfg, a.t_r, depth_correction=True)
+    lab = labels.pseudo_labels(
+        train, cfg, a.t_r, True, occluded_weight=a.occluded_weight, snap_to_rays=a.snap_to_rays
+    )
     if a.supervision == "truth":
         lab = truth_labels(train)
     elif a.supervision == "truth-where-pseudo":
@@ -167,6 +188,8 @@ def main(argv=None):
     results = {
         "command": " ".join(sys.argv[1:] if argv is None else argv),
         "supervision": a.supervision,
+        "occluded_weight": a.occluded_weight,
+        "snap_to_rays": a.snap_to_rays,
         "lidar_train_s": time.time() - t,
         "levels": [],
     }

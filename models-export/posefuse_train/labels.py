@@ -2,12 +2,14 @@
 reliability, pointwise segmentation labels, and an optional correction of eq. 1's surface bias.
 
 Distances are in model-input pixels divided by S (the contract's units), so temperatures do not
-depend on the crop size. Only visible 2D keypoints produce labels."""
+depend on the crop size. Visible 2D keypoints produce eq. 1's labels; occluded ones, optionally, a
+label on their camera ray (occluded_labels)."""
 
 from __future__ import annotations
 
 import numpy as np
 
+from . import metrics
 from .keypoints import K
 
 # Distance from the visible body surface to the joint centre for a 1.75 m adult, metres: roughly
@@ -51,16 +53,67 @@ def lift(
     return out.astype(np.float32)
 
 
-def reliability(
-    kp_uv: np.ndarray, points_uv: np.ndarray, counts: np.ndarray | None, image_size: int, t_r: float
+def nearest_d2(
+    kp_uv: np.ndarray, points_uv: np.ndarray, counts: np.ndarray | None, image_size: int
 ) -> np.ndarray:
-    """r_k = exp(-T_r * min_i d_ik^2) -> [M,K]; 0 when no point has a projection."""
+    """[M,K] squared distance (S units) from each 2D keypoint to the nearest projected point of the
+    person's first `counts` points; inf when none has a projection."""
     d2 = _d2(kp_uv, points_uv, image_size)
     usable = np.isfinite(d2)
     if counts is not None:
         usable &= (np.arange(points_uv.shape[1])[None, :] < counts[:, None])[:, None, :]
-    m = np.where(usable, d2, np.inf).min(axis=2)
-    return np.where(np.isfinite(m), np.exp(-t_r * np.where(np.isfinite(m), m, 0.0)), 0.0).astype(np.float32)
+    return np.where(usable, d2, np.inf).min(axis=2)
+
+
+def reliability(
+    kp_uv: np.ndarray, points_uv: np.ndarray, counts: np.ndarray | None, image_size: int, t_r: float
+) -> np.ndarray:
+    """r_k = exp(-T_r * min_i d_ik^2) -> [M,K]; 0 when no point has a projection."""
+    m = nearest_d2(kp_uv, points_uv, counts, image_size)
+    finite = np.isfinite(m)
+    return np.where(finite, np.exp(-t_r * np.where(finite, m, 0.0)), 0.0).astype(np.float32)
+
+
+def on_label_rays(data: dict, depth: np.ndarray) -> np.ndarray:
+    """[M,K,3] model-input points on each 2D label's camera ray at `depth` [M,K] (metres along the
+    camera's optical axis)."""
+    crop = np.asarray(data["crop"], np.float64)
+    px = np.asarray(data["kp2d"], np.float64) / crop[:, None, 2:3] + crop[:, None, :2]
+    vehicle = metrics.unproject(px, depth, data["intrinsic"], data["extrinsic"])
+    return metrics.vehicle_to_local(vehicle, data["box3d"], data["frame_yaw"]).astype(np.float32)
+
+
+def on_rays_at_box_depth(data: dict) -> np.ndarray:
+    """[M,K,3] points on each 2D label's ray at the depth of the person's 3D box centre: the 2D
+    label fixes where a joint is across the ray; where no LiDAR return tells how deep it is, the
+    box's middle is the depth least wrong on average whichever way the person faces."""
+    box = np.asarray(data["box3d"], np.float64)
+    depth = metrics.camera_depth(box[:, :3], data["extrinsic"])
+    return on_label_rays(data, np.repeat(depth[:, None], K, axis=1))
+
+
+def snapped_to_label_rays(kp3d: np.ndarray, data: dict) -> np.ndarray:
+    """Each label moved across its 2D label's camera ray onto it, at the depth it had: eq. 1's
+    average of the points around a 2D label lies beside the label's ray by up to the points'
+    spacing; the depth is what the points tell, where across the ray the joint is what the 2D
+    label tells."""
+    vehicle = metrics.local_to_vehicle(kp3d, data["box3d"], data["frame_yaw"])
+    ext = np.asarray(data["extrinsic"], np.float64).reshape(-1, 4, 4)
+    depth = np.einsum("mj,mkj->mk", ext[:, :3, 0], vehicle - ext[:, None, :3, 3])
+    return on_label_rays(data, depth)
+
+
+def occluded_labels(data: dict, near: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
+    """Labels for keypoints whose 2D label is marked occluded and has no in-box point within
+    `radius` (S units; `near`: nearest_d2 of every keypoint): on the label's ray at the box
+    centre's depth (on_rays_at_box_depth). Where a point is near, it is the occluder's, and a
+    joint hidden behind a body part keeps no label: the net learns those from persons in which
+    they are seen. -> kp3d [M,K,3] (0 elsewhere), mask [M,K]."""
+    mask = (np.asarray(data["kp2d_occluded"]) > 0) & (near > radius**2)
+    mask &= np.isfinite(data["kp2d"]).all(axis=2)
+    kp3d = on_rays_at_box_depth(data)
+    mask &= np.isfinite(kp3d).all(axis=2)
+    return np.where(mask[..., None], kp3d, 0.0).astype(np.float32), mask
 
 
 def segmentation_labels(kp_uv, kp_visible, points_uv, image_size: int, radius: float):
@@ -90,24 +143,45 @@ def push_along_rays(labels: np.ndarray, sensor_xyz: np.ndarray, offsets: np.ndar
     return (labels + unit * offsets[..., None]).astype(np.float32)
 
 
-def pseudo_labels(data: dict, cfg, t_r: float, depth_correction: bool = False, chunk: int = 512) -> dict:
+def pseudo_labels(
+    data: dict,
+    cfg,
+    t_r: float,
+    depth_correction: bool = False,
+    chunk: int = 512,
+    occluded_weight: float = 0.0,
+    occluded_radius: float = 0.05,
+    snap_to_rays: bool = False,
+) -> dict:
     """Pseudo 3D labels for a whole dataset from ALL in-box points (before any subsampling).
 
     Returns kp3d [M,K,3] (0 where unusable), weight [M,K] = visibility x reliability (0 where no
-    label), and visible [M,K] (the 2D labels that produced a pseudo label)."""
+    label), and visible [M,K] (the 2D labels that produced a pseudo label). With `occluded_weight`
+    > 0, occluded 2D labels with no point near them get occluded_labels() at that weight; they
+    stay out of `visible`, which the segmentation labels read."""
     m = len(data["kp2d"])
     s = cfg.image_size
     kp3d = np.zeros((m, K, 3), np.float32)
-    rel = np.zeros((m, K), np.float32)
+    near = np.zeros((m, K), np.float64)
     for a in range(0, m, chunk):
         b = min(m, a + chunk)
         p = int(max(1, data["points_count"][a:b].max()))
         args = (data["kp2d"][a:b], data["points_uv"][a:b, :p], data["points_count"][a:b])
         kp3d[a:b] = lift(args[0], args[1], data["points_xyz"][a:b, :p], args[2], s, cfg.lift_temperature)
-        rel[a:b] = reliability(*args, s, t_r)
+        near[a:b] = nearest_d2(*args, s)
+    finite = np.isfinite(near)
+    rel = np.where(finite, np.exp(-t_r * np.where(finite, near, 0.0)), 0.0).astype(np.float32)
     ok = (data["kp2d_visible"] > 0) & np.isfinite(kp3d).all(axis=2) & (rel > 0)
     kp3d = np.where(ok[..., None], kp3d, 0.0).astype(np.float32)
     if depth_correction:
         off = depth_offsets(data["box3d"][:, 5])
         kp3d = np.where(ok[..., None], push_along_rays(kp3d, data["sensor_xyz"], off), 0.0)
-    return {"kp3d": kp3d, "weight": np.where(ok, rel, 0.0).astype(np.float32), "visible": ok}
+    if snap_to_rays:
+        kp3d = np.where(ok[..., None], snapped_to_label_rays(kp3d, data), 0.0)
+    weight = np.where(ok, rel, 0.0)
+    if occluded_weight > 0:
+        occ, mask = occluded_labels(data, near, occluded_radius)
+        mask &= ~ok
+        kp3d = np.where(mask[..., None], occ, kp3d)
+        weight = np.where(mask, occluded_weight, weight)
+    return {"kp3d": kp3d.astype(np.float32), "weight": weight.astype(np.float32), "visible": ok}

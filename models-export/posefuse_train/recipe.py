@@ -54,9 +54,19 @@ def set_value(recipe: dict, assignment: str) -> None:
     node = recipe
     for p in parents:
         node = node.setdefault(p, {})
-    if leaf not in node:
+    if leaf not in node and leaf not in _defaulted(parents):
         raise ValueError(f"--set {key}: the recipe has no such key")
     node[leaf] = value
+
+
+def _defaulted(section: list[str]) -> set[str]:
+    """Keys a recipe may leave out, its config's default standing in (a value added to the trainer
+    after a recipe was written, which that recipe's bundle was trained without)."""
+    return {
+        ("camera",): _fields(TrainCameraConfig) | _fields(CameraNetConfig),
+        ("point",): _fields(TrainPointConfig) - {"fusion"},
+        ("point", "net"): _fields(PointNetConfig) - {"in_features"},
+    }.get(tuple(section), set())
 
 
 def validate(recipe: dict) -> None:

@@ -130,14 +130,22 @@ class _MemoryShards:
         return {k: self.data[k] for k in keys}
 
 
-def stream_labels(data, cfg: PipelineConfig, t_r: float, depth_correction: bool) -> dict:
+# What occluded_weight > 0 reads besides: the camera and crop that turn a 2D label into a ray.
+OCCLUDED_LABEL_KEYS = ("kp2d_occluded", "crop", "intrinsic", "extrinsic", "frame_yaw")
+
+
+def stream_labels(
+    data, cfg: PipelineConfig, t_r: float, depth_correction: bool, occluded_weight: float = 0.0
+) -> dict:
     """Pseudo labels of every sample of a dict or ShardSet (small: [M,K] and [M,K,3]), computed one
     shard at a time."""
     source = data if isinstance(data, Source) else Source(data)
     keys = ("kp2d", "kp2d_visible", "points_xyz", "points_uv", "points_count", "box3d", "sensor_xyz")
+    if occluded_weight > 0:
+        keys += OCCLUDED_LABEL_KEYS
     parts = [
         # chunks of 128: eq. 1 holds [chunk, K, P, 2] float64 distances (P: the widest person)
-        pseudo_labels(source.shards.read(i, keys), cfg, t_r, depth_correction, chunk=128)
+        pseudo_labels(source.shards.read(i, keys), cfg, t_r, depth_correction, 128, occluded_weight)
         for i in range(source.shards.num_shards)
     ]
     return {k: np.concatenate([p[k] for p in parts], axis=0) for k in ("kp3d", "weight", "visible")}
@@ -521,6 +529,9 @@ class TrainPointConfig:
     time_budget_s: float = 0.0  # opt-in: > 0 stops (with the schedule compressed) when this runs out
     seed: int = 0
     depth_correction: bool = False  # pseudo labels pushed along the rays (labels.depth_offsets)
+    # > 0: occluded 2D labels that no point is near get a label on their ray at the box centre's
+    # depth, at this weight (labels.occluded_labels; docs/TRAINING.md, "Labels for occluded keypoints")
+    occluded_weight: float = 0.0
 
 
 def select_points(counts: torch.Tensor, n: int, p: int, gen: torch.Generator) -> torch.Tensor:
@@ -586,7 +597,7 @@ def train_point(
     gen, rng = seed_everything(cfg.seed)
     source = Source(data)
     if labels is None:
-        labels = stream_labels(source, pipeline, t_r, cfg.depth_correction)
+        labels = stream_labels(source, pipeline, t_r, cfg.depth_correction, cfg.occluded_weight)
     counts_np = source.column("points_count")
     usable_mask = (counts_np > 0) & (labels["weight"] > 0).any(axis=1)
     m = int(usable_mask.sum())

@@ -148,7 +148,13 @@ def test_the_builtin_recipes_load_and_overrides_are_checked():
     assert paper["recipe"]["image_size"] == 256 and paper["pipeline"]["smoothing_kernel"] == 7
     cpu = recipes.load("cpu", ["camera.steps=7", "camera.backbone=resnet18"])
     assert recipes.camera_config(cpu)[1].steps == 7 and recipes.camera_config(cpu)[0].backbone == "resnet18"
-    for bad in ("camera.nope=1", "camera=1", "nosuch.steps=1"):
+    # a trainer value the recipe leaves at its default can be set; a misspelt one cannot
+    assert "occluded_weight" not in recipes.load("cpu128-flip")["point"]
+    occ = recipes.load("cpu128-flip", ["point.occluded_weight=0.5"])
+    assert recipes.point_config(occ, False)[1].occluded_weight == 0.5
+    assert recipes.point_config(recipes.load("cpu128-flip"), False)[1].occluded_weight == 0.0
+    misspelt = ("point.nope=1", "point.fusion=false", "point.net.nope=1", "data.nope=1")
+    for bad in ("camera.nope=1", "camera=1", "nosuch.steps=1", *misspelt):
         with pytest.raises(ValueError):
             recipes.load("cpu", [bad])
     assert recipes.camera_config(recipes.load("cpu", ["camera.upsample=shuffle"]))[0].upsample == "shuffle"

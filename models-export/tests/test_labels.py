@@ -3,7 +3,7 @@ import math
 import numpy as np
 import torch
 
-from posefuse_train import labels
+from posefuse_train import labels, metrics
 from posefuse_train.data import load
 from posefuse_train.train import rotate_z
 
@@ -89,3 +89,63 @@ def test_pseudo_labels_on_shards(synthetic_sets):
         ang,
     )
     np.testing.assert_allclose(rot, want.numpy(), atol=1e-5)
+
+
+def test_occluded_labels_lie_on_the_2d_labels_ray_at_the_box_centres_depth(synthetic_sets):
+    d, cfg, _ = load(synthetic_sets[0])
+    lab = labels.on_rays_at_box_depth(d)
+    vehicle = metrics.local_to_vehicle(lab, d["box3d"], d["frame_yaw"])
+    # they project back onto the 2D labels ...
+    crop = d["crop"].astype(np.float64)
+    px = metrics.project(vehicle, d["intrinsic"], d["extrinsic"])
+    np.testing.assert_allclose((px - crop[:, None, :2]) * crop[:, None, 2:3], d["kp2d"], atol=1e-3)
+    # ... at the depth of the box centre (the synthetic camera looks along +x from the origin)
+    np.testing.assert_allclose(vehicle[..., 0], np.repeat(d["box3d"][:, :1], 13, axis=1), atol=1e-4)
+
+
+def test_pseudo_labels_give_occluded_keypoints_without_a_point_near_them_a_ray_label(synthetic_sets):
+    d, cfg, _ = load(synthetic_sets[0])
+    base = labels.pseudo_labels(d, cfg, t_r=200.0, depth_correction=True)
+    assert not (base["weight"][d["kp2d_occluded"] > 0] > 0).any()
+    # an occluded keypoint gets a label exactly when no point lies within the radius (5 % of S)
+    with_occ = labels.pseudo_labels(d, cfg, t_r=200.0, depth_correction=True, occluded_weight=0.5)
+    nearest = labels.nearest_d2(d["kp2d"], d["points_uv"], d["points_count"], cfg.image_size)
+    added = (with_occ["weight"] > 0) & (base["weight"] == 0)
+    np.testing.assert_array_equal(added, (d["kp2d_occluded"] > 0) & (nearest > 0.05**2))
+    assert 0 < added.sum() < (d["kp2d_occluded"] > 0).sum()
+    np.testing.assert_array_equal(with_occ["weight"][~added], base["weight"][~added])
+    np.testing.assert_array_equal(with_occ["kp3d"][~added], base["kp3d"][~added])
+    # with no point counted, every occluded 2D label is one that no point is near
+    empty = dict(d, points_count=np.zeros_like(d["points_count"]))
+    lab = labels.pseudo_labels(empty, cfg, t_r=200.0, depth_correction=True, occluded_weight=0.5)
+    occ = d["kp2d_occluded"] > 0
+    assert occ.sum() > 20
+    np.testing.assert_array_equal(lab["weight"] > 0, occ)
+    np.testing.assert_allclose(lab["weight"][occ], 0.5)
+    np.testing.assert_allclose(lab["kp3d"][occ], labels.on_rays_at_box_depth(d)[occ], atol=1e-6)
+    assert not lab["visible"].any()  # segmentation never treats an occluder's points as the joint
+    # a smaller radius labels more of them; the visible ones' labels never change
+    small = labels.pseudo_labels(
+        d, cfg, t_r=200.0, depth_correction=True, occluded_weight=0.5, occluded_radius=1e-4
+    )
+    assert ((small["weight"] > 0) & occ).sum() > added.sum()
+    np.testing.assert_array_equal(small["visible"], base["visible"])
+
+
+def test_snapped_labels_keep_their_depth_and_land_on_the_2d_labels_rays(synthetic_sets):
+    d, cfg, _ = load(synthetic_sets[0])
+    base = labels.pseudo_labels(d, cfg, t_r=200.0, depth_correction=True)
+    snap = labels.pseudo_labels(d, cfg, t_r=200.0, depth_correction=True, snap_to_rays=True)
+    ok = base["visible"]
+    np.testing.assert_array_equal(snap["visible"], ok)
+    np.testing.assert_array_equal(snap["weight"], base["weight"])
+    assert not snap["kp3d"][~ok].any()
+    vb = metrics.local_to_vehicle(base["kp3d"], d["box3d"], d["frame_yaw"])
+    vs = metrics.local_to_vehicle(snap["kp3d"], d["box3d"], d["frame_yaw"])
+    # the synthetic camera looks along +x from the origin: depth is x
+    np.testing.assert_allclose(vs[..., 0][ok], vb[..., 0][ok], atol=1e-4)
+    crop = d["crop"].astype(np.float64)
+    px = (metrics.project(vs, d["intrinsic"], d["extrinsic"]) - crop[:, None, :2]) * crop[:, None, 2:3]
+    np.testing.assert_allclose(px[ok], d["kp2d"][ok], atol=1e-3)
+    moved = np.linalg.norm(snap["kp3d"] - base["kp3d"], axis=2)[ok]
+    assert moved.mean() > 0.005  # eq. 1's labels were beside the rays
