@@ -267,7 +267,12 @@ def fit(a: FitArgs) -> dict | None:
             if labels is None:
                 t = time.time()
                 labels = stream_labels(
-                    train, pipeline, recipe["data"]["t_r"], pcfg.depth_correction, pcfg.occluded_weight
+                    train,
+                    pipeline,
+                    recipe["data"]["t_r"],
+                    pcfg.depth_correction,
+                    pcfg.occluded_weight,
+                    pcfg.snap_to_rays,
                 )
                 timings["labels_s"] = time.time() - t
                 log({"event": "labels", "persons": len(labels["weight"])})

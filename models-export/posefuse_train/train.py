@@ -130,22 +130,28 @@ class _MemoryShards:
         return {k: self.data[k] for k in keys}
 
 
-# What occluded_weight > 0 reads besides: the camera and crop that turn a 2D label into a ray.
-OCCLUDED_LABEL_KEYS = ("kp2d_occluded", "crop", "intrinsic", "extrinsic", "frame_yaw")
+# What labels on the 2D labels' rays read besides: the camera and crop that make a pixel a ray.
+RAY_LABEL_KEYS = ("kp2d_occluded", "crop", "intrinsic", "extrinsic", "frame_yaw")
 
 
 def stream_labels(
-    data, cfg: PipelineConfig, t_r: float, depth_correction: bool, occluded_weight: float = 0.0
+    data,
+    cfg: PipelineConfig,
+    t_r: float,
+    depth_correction: bool,
+    occluded_weight: float = 0.0,
+    snap_to_rays: bool = False,
 ) -> dict:
     """Pseudo labels of every sample of a dict or ShardSet (small: [M,K] and [M,K,3]), computed one
     shard at a time."""
     source = data if isinstance(data, Source) else Source(data)
     keys = ("kp2d", "kp2d_visible", "points_xyz", "points_uv", "points_count", "box3d", "sensor_xyz")
-    if occluded_weight > 0:
-        keys += OCCLUDED_LABEL_KEYS
+    if occluded_weight > 0 or snap_to_rays:
+        keys += RAY_LABEL_KEYS
+    rays = {"occluded_weight": occluded_weight, "snap_to_rays": snap_to_rays}
     parts = [
         # chunks of 128: eq. 1 holds [chunk, K, P, 2] float64 distances (P: the widest person)
-        pseudo_labels(source.shards.read(i, keys), cfg, t_r, depth_correction, 128, occluded_weight)
+        pseudo_labels(source.shards.read(i, keys), cfg, t_r, depth_correction, 128, **rays)
         for i in range(source.shards.num_shards)
     ]
     return {k: np.concatenate([p[k] for p in parts], axis=0) for k in ("kp3d", "weight", "visible")}
@@ -532,6 +538,8 @@ class TrainPointConfig:
     # > 0: occluded 2D labels that no point is near get a label on their ray at the box centre's
     # depth, at this weight (labels.occluded_labels; docs/TRAINING.md, "Labels for occluded keypoints")
     occluded_weight: float = 0.0
+    # each eq. 1 label moved onto its 2D label's camera ray at its own depth (labels.snapped_to_label_rays)
+    snap_to_rays: bool = False
 
 
 def select_points(counts: torch.Tensor, n: int, p: int, gen: torch.Generator) -> torch.Tensor:
@@ -597,7 +605,9 @@ def train_point(
     gen, rng = seed_everything(cfg.seed)
     source = Source(data)
     if labels is None:
-        labels = stream_labels(source, pipeline, t_r, cfg.depth_correction, cfg.occluded_weight)
+        labels = stream_labels(
+            source, pipeline, t_r, cfg.depth_correction, cfg.occluded_weight, cfg.snap_to_rays
+        )
     counts_np = source.column("points_count")
     usable_mask = (counts_np > 0) & (labels["weight"] > 0).any(axis=1)
     m = int(usable_mask.sum())

@@ -127,8 +127,8 @@ def test_training_on_shards_that_fit_equals_training_on_the_arrays(synthetic_set
     for k in ("kp3d", "weight", "visible"):
         np.testing.assert_array_equal(lab[k], streamed[k])
     # labels for occluded keypoints read the camera columns from the shards as well
-    occ = labels_mod.pseudo_labels(d, cfg, t_r=200.0, depth_correction=True, occluded_weight=0.5)
-    occ_streamed = train.stream_labels(shards, cfg, 200.0, True, occluded_weight=0.5)
+    occ = labels_mod.pseudo_labels(d, cfg, 200.0, True, occluded_weight=0.5, snap_to_rays=True)
+    occ_streamed = train.stream_labels(shards, cfg, 200.0, True, occluded_weight=0.5, snap_to_rays=True)
     assert (occ["weight"] == 0.5).sum() > 0
     for k in ("kp3d", "weight", "visible"):
         np.testing.assert_array_equal(occ[k], occ_streamed[k])
@@ -149,13 +149,16 @@ def test_training_on_shards_that_fit_equals_training_on_the_arrays(synthetic_set
     np.testing.assert_allclose(pt_mem.loss_history, pt_shards.loss_history, rtol=1e-5)
     # without labels given, the run makes them as its config says, occluded ones included
     lidar = dataclasses.replace(pnet, in_features=3)
-    occ_cfg = dataclasses.replace(pcfg, fusion=False, depth_correction=True, occluded_weight=0.5)
+    occ_cfg = dataclasses.replace(
+        pcfg, fusion=False, depth_correction=True, occluded_weight=0.5, snap_to_rays=True
+    )
     made = train.train_point(shards, None, None, cfg, lidar, occ_cfg, **quiet)
     given = train.train_point(shards, occ_streamed, None, cfg, lidar, occ_cfg, **quiet)
     assert made.loss_history == given.loss_history
-    plain = dataclasses.replace(occ_cfg, occluded_weight=0.0)
-    without = train.train_point(shards, None, None, cfg, lidar, plain, **quiet)
-    assert without.loss_history != made.loss_history
+    for plain in ({"occluded_weight": 0.0}, {"snap_to_rays": False}):
+        other = dataclasses.replace(occ_cfg, **plain)
+        without = train.train_point(shards, None, None, cfg, lidar, other, **quiet)
+        assert without.loss_history != made.loss_history, plain
 
 
 @pytest.mark.parametrize("memory_mb", [0.0, 0.05])
