@@ -69,9 +69,12 @@ def reliability(
     kp_uv: np.ndarray, points_uv: np.ndarray, counts: np.ndarray | None, image_size: int, t_r: float
 ) -> np.ndarray:
     """r_k = exp(-T_r * min_i d_ik^2) -> [M,K]; 0 when no point has a projection."""
-    m = nearest_d2(kp_uv, points_uv, counts, image_size)
-    finite = np.isfinite(m)
-    return np.where(finite, np.exp(-t_r * np.where(finite, m, 0.0)), 0.0).astype(np.float32)
+    return _reliability_of(nearest_d2(kp_uv, points_uv, counts, image_size), t_r)
+
+
+def _reliability_of(near: np.ndarray, t_r: float) -> np.ndarray:
+    finite = np.isfinite(near)
+    return np.where(finite, np.exp(-t_r * np.where(finite, near, 0.0)), 0.0).astype(np.float32)
 
 
 def on_label_rays(data: dict, depth: np.ndarray) -> np.ndarray:
@@ -87,9 +90,8 @@ def on_rays_at_box_depth(data: dict) -> np.ndarray:
     """[M,K,3] points on each 2D label's ray at the depth of the person's 3D box centre: the 2D
     label fixes where a joint is across the ray; where no LiDAR return tells how deep it is, the
     box's middle is the depth least wrong on average whichever way the person faces."""
-    box = np.asarray(data["box3d"], np.float64)
-    depth = metrics.camera_depth(box[:, :3], data["extrinsic"])
-    return on_label_rays(data, np.repeat(depth[:, None], K, axis=1))
+    depth = metrics.camera_depth(np.asarray(data["box3d"], np.float64)[:, None, :3], data["extrinsic"])
+    return on_label_rays(data, np.repeat(depth, K, axis=1))
 
 
 def snapped_to_label_rays(kp3d: np.ndarray, data: dict) -> np.ndarray:
@@ -98,9 +100,7 @@ def snapped_to_label_rays(kp3d: np.ndarray, data: dict) -> np.ndarray:
     spacing; the depth is what the points tell, where across the ray the joint is what the 2D
     label tells."""
     vehicle = metrics.local_to_vehicle(kp3d, data["box3d"], data["frame_yaw"])
-    ext = np.asarray(data["extrinsic"], np.float64).reshape(-1, 4, 4)
-    depth = np.einsum("mj,mkj->mk", ext[:, :3, 0], vehicle - ext[:, None, :3, 3])
-    return on_label_rays(data, depth)
+    return on_label_rays(data, metrics.camera_depth(vehicle, data["extrinsic"]))
 
 
 def occluded_labels(data: dict, near: np.ndarray, radius: float) -> tuple[np.ndarray, np.ndarray]:
@@ -169,8 +169,7 @@ def pseudo_labels(
         args = (data["kp2d"][a:b], data["points_uv"][a:b, :p], data["points_count"][a:b])
         kp3d[a:b] = lift(args[0], args[1], data["points_xyz"][a:b, :p], args[2], s, cfg.lift_temperature)
         near[a:b] = nearest_d2(*args, s)
-    finite = np.isfinite(near)
-    rel = np.where(finite, np.exp(-t_r * np.where(finite, near, 0.0)), 0.0).astype(np.float32)
+    rel = _reliability_of(near, t_r)
     ok = (data["kp2d_visible"] > 0) & np.isfinite(kp3d).all(axis=2) & (rel > 0)
     kp3d = np.where(ok[..., None], kp3d, 0.0).astype(np.float32)
     if depth_correction:

@@ -211,7 +211,8 @@ def unproject(px: np.ndarray, depth: np.ndarray, intrinsic: np.ndarray, extrinsi
 
 
 def camera_depth(vehicle: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
-    """[M,3] vehicle points -> [M] depth along each camera's optical axis."""
+    """[M,...,3] vehicle points -> [M,...] depth along each person's camera's optical axis."""
     ext = np.asarray(extrinsic, np.float64).reshape(-1, 4, 4)
-    p = np.asarray(vehicle, np.float64) - ext[:, :3, 3]
-    return np.einsum("mj,mj->m", ext[:, :3, 0], p)
+    p = np.asarray(vehicle, np.float64)
+    t = ext[:, :3, 3].reshape((len(ext),) + (1,) * (p.ndim - 2) + (3,))
+    return np.einsum("mj,m...j->m...", ext[:, :3, 0], p - t)

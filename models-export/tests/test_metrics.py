@@ -135,6 +135,7 @@ def test_unproject_inverts_project_through_a_distorted_lens_and_a_turned_camera(
     cam_depth = np.einsum("j,kj->k", ext[:3, 0], pts[0] - ext[:3, 3])[None]
     back = metrics.unproject(px, cam_depth, intrinsic, ext.reshape(1, 16))
     np.testing.assert_allclose(back, pts, atol=1e-6)
+    np.testing.assert_allclose(metrics.camera_depth(pts, ext.reshape(1, 16)), cam_depth)
     np.testing.assert_allclose(metrics.camera_depth(pts[:, 0], ext.reshape(1, 16)), cam_depth[:, 0])
     # half the depth: the same pixel, half-way to the camera
     half = metrics.unproject(px, cam_depth / 2, intrinsic, ext.reshape(1, 16))
