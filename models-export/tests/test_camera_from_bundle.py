@@ -1,4 +1,5 @@
 import json
+from pathlib import Path
 
 import numpy as np
 import onnxruntime as ort
@@ -62,3 +63,23 @@ def test_a_manifest_naming_another_architecture_is_refused(tmp_path):
     with pytest.raises(SystemExit, match="not"):
         camera_from_bundle.main(["--bundle", str(tmp_path / "b"), "--out", str(tmp_path / "camera.pt")])
     assert not (tmp_path / "camera.pt").exists()
+
+
+def test_the_committed_default_bundles_camera_comes_back(tmp_path):
+    """The default bundle's camera upsamples by pixel shuffle and runs the flip test inside its
+    graph: the recovered net, asked as the bundle asks it, gives its heatmaps (the tool checks
+    that against ONNX Runtime before it writes), and the checkpoint keeps the architecture."""
+    default = Path(__file__).resolve().parents[2] / "models" / "default"
+    camera_from_bundle.main(["--bundle", str(default), "--out", str(tmp_path / "camera.pt")])
+    net = camera_from_checkpoint(load_checkpoint(tmp_path / "camera.pt"))
+    manifest = json.loads((default / "manifest.json").read_text())
+    assert net.cfg.upsample == manifest["training"]["config"]["camera"]["upsample"] == "shuffle"
+    assert manifest["models"]["camera"]["flip_test"]
+    x = torch.randn(2, 3, 128, 128, generator=torch.Generator().manual_seed(3))
+    sess = ort.InferenceSession(str(default / "camera.onnx"), providers=["CPUExecutionProvider"])
+    want = sess.run(None, {"image": x.numpy()})[0]
+    with torch.no_grad():
+        plain = net(x).numpy()
+        flipped = camera_from_bundle.as_served(net, True)(x).numpy()
+    assert np.abs(flipped - want).max() < 1e-4
+    assert np.abs(plain - want).max() > 1e-3  # the graph's answer is the flip test's, not one pass

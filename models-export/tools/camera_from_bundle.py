@@ -22,7 +22,7 @@ import torch
 from onnx import numpy_helper
 from torch import nn
 
-from posefuse_train.camera_net import CameraNet, deconv_layers_for
+from posefuse_train.camera_net import CameraNet, as_served, deconv_layers_for
 from posefuse_train.config import CameraNetConfig, PipelineConfig
 from posefuse_train.train import TrainCameraConfig, checkpoint
 
@@ -86,7 +86,7 @@ def load_camera(model_path: Path, cfg: CameraNetConfig) -> CameraNet:
     return net.eval()
 
 
-def max_difference(net: CameraNet, model_path: Path, size: int, n: int = 8) -> float:
+def max_difference(net: nn.Module, model_path: Path, size: int, n: int = 8) -> float:
     x = torch.randn(n, 3, size, size, generator=torch.Generator().manual_seed(0))
     sess = ort.InferenceSession(str(model_path), providers=["CPUExecutionProvider"])
     want = sess.run(None, {sess.get_inputs()[0].name: x.numpy()})[0]
@@ -111,10 +111,13 @@ def main(argv=None):
         deconv_channels=cam["deconv_channels"],
         deconv_layers=deconv_layers_for(pipeline.image_size, pipeline.heatmap_size, shuffle),
         final_shuffle=shuffle,
+        upsample=cam.get("upsample", CameraNetConfig.upsample),
     )
     model_path = bundle / manifest["models"]["camera"]["file"]
     net = load_camera(model_path, net_cfg)
-    diff = max_difference(net, model_path, pipeline.image_size)
+    # a flip-test graph runs the same convolutions on the crop and its mirror as one batch
+    served = as_served(net, manifest["models"]["camera"].get("flip_test", False))
+    diff = max_difference(served, model_path, pipeline.image_size)
     if diff > a.tol:
         raise SystemExit(f"recovered camera net differs from {model_path} by {diff:.2e} (> {a.tol})")
     fields = TrainCameraConfig.__dataclass_fields__
