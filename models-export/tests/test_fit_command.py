@@ -149,11 +149,13 @@ def test_the_builtin_recipes_load_and_overrides_are_checked():
     cpu = recipes.load("cpu", ["camera.steps=7", "camera.backbone=resnet18"])
     assert recipes.camera_config(cpu)[1].steps == 7 and recipes.camera_config(cpu)[0].backbone == "resnet18"
     # a trainer value the recipe leaves at its default can be set; a misspelt one cannot
-    assert "occluded_weight" not in recipes.load("cpu128-flip")["point"]
-    occ = recipes.load("cpu128-flip", ["point.occluded_weight=0.5", "point.snap_to_rays=true"])
+    assert "occluded_weight" not in recipes.load("cpu")["point"]
+    occ = recipes.load("cpu", ["point.occluded_weight=0.5", "point.snap_to_rays=true"])
     assert recipes.point_config(occ, False)[1].occluded_weight == 0.5
     assert recipes.point_config(occ, True)[1].snap_to_rays is True
-    assert recipes.point_config(recipes.load("cpu128-flip"), False)[1].occluded_weight == 0.0
+    assert recipes.point_config(recipes.load("cpu"), False)[1].occluded_weight == 0.0
+    flip = recipes.point_config(recipes.load("cpu128-flip"), False)[1]  # the default bundle's
+    assert (flip.occluded_weight, flip.snap_to_rays) == (0.5, True)
     misspelt = ("point.nope=1", "point.fusion=false", "point.net.nope=1", "data.nope=1")
     for bad in ("camera.nope=1", "camera=1", "nosuch.steps=1", *misspelt):
         with pytest.raises(ValueError):
