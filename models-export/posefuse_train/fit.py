@@ -266,14 +266,7 @@ def fit(a: FitArgs) -> dict | None:
                 continue
             if labels is None:
                 t = time.time()
-                labels = stream_labels(
-                    train,
-                    pipeline,
-                    recipe["data"]["t_r"],
-                    pcfg.depth_correction,
-                    pcfg.occluded_weight,
-                    pcfg.snap_to_rays,
-                )
+                labels = stream_labels(train, pipeline, recipe["data"]["t_r"], pcfg)
                 timings["labels_s"] = time.time() - t
                 log({"event": "labels", "persons": len(labels["weight"])})
             t = time.time()

@@ -12,6 +12,10 @@ import numpy as np
 from . import metrics
 from .keypoints import K
 
+# The positive radius r of the segmentation labels, in units of S (TrainPointConfig.seg_radius): a
+# point this near a 2D label is that joint's; an occluded label with one this near is the occluder's.
+SEGMENTATION_RADIUS = 0.05
+
 # Distance from the visible body surface to the joint centre for a 1.75 m adult, metres: roughly
 # half the limb thickness at that joint (anthropometric averages; the nose lies on the surface).
 JOINT_DEPTH_M = np.array(
@@ -150,7 +154,7 @@ def pseudo_labels(
     depth_correction: bool = False,
     chunk: int = 512,
     occluded_weight: float = 0.0,
-    occluded_radius: float = 0.05,
+    occluded_radius: float = SEGMENTATION_RADIUS,
     snap_to_rays: bool = False,
 ) -> dict:
     """Pseudo 3D labels for a whole dataset from ALL in-box points (before any subsampling).
@@ -179,8 +183,9 @@ def pseudo_labels(
         kp3d = np.where(ok[..., None], snapped_to_label_rays(kp3d, data), 0.0)
     weight = np.where(ok, rel, 0.0)
     if occluded_weight > 0:
+        # a 2D label is visible or occluded, never both (kp2d_visible / kp2d_occluded): these fill
+        # only keypoints the visible labels left empty
         occ, mask = occluded_labels(data, near, occluded_radius)
-        mask &= ~ok
         kp3d = np.where(mask[..., None], occ, kp3d)
         weight = np.where(mask, occluded_weight, weight)
     return {"kp3d": kp3d.astype(np.float32), "weight": weight.astype(np.float32), "visible": ok}

@@ -167,21 +167,19 @@ def project(vehicle: np.ndarray, intrinsic: np.ndarray, extrinsic: np.ndarray) -
     front = x > 1e-6
     xs = np.where(front, x, 1.0)
     un, vn = -cam[..., 1] / xs, -cam[..., 2] / xs
-    r2 = un * un + vn * vn
-    radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
-    ud = un * radial + 2.0 * p1 * un * vn + p2 * (r2 + 2.0 * un * un)
-    vd = vn * radial + p1 * (r2 + 2.0 * vn * vn) + 2.0 * p2 * un * vn
+    ud, vd, radial = _distort(un, vn, k1, k2, p1, p2, k3)
     uv = np.stack([fu * ud + cu, fv * vd + cv], axis=2)
     valid = front & (radial >= RADIAL_FACTOR_RANGE[0]) & (radial <= RADIAL_FACTOR_RANGE[1])
     return np.where(valid[..., None], uv, np.nan)
 
 
 def _distort(un, vn, k1, k2, p1, p2, k3):
+    """Waymo's lens polynomial: normalised -> distorted coordinates, and the radial factor."""
     r2 = un * un + vn * vn
     radial = 1.0 + r2 * (k1 + r2 * (k2 + r2 * k3))
     ud = un * radial + 2.0 * p1 * un * vn + p2 * (r2 + 2.0 * un * un)
     vd = vn * radial + p1 * (r2 + 2.0 * vn * vn) + 2.0 * p2 * un * vn
-    return ud, vd
+    return ud, vd, radial
 
 
 def unproject(px: np.ndarray, depth: np.ndarray, intrinsic: np.ndarray, extrinsic: np.ndarray) -> np.ndarray:
@@ -196,10 +194,10 @@ def unproject(px: np.ndarray, depth: np.ndarray, intrinsic: np.ndarray, extrinsi
     un, vn = ud.copy(), vd.copy()
     h = 1e-7
     for _ in range(20):
-        fu0, fv0 = _distort(un, vn, *lens)
+        fu0, fv0, _ = _distort(un, vn, *lens)
         ru, rv = fu0 - ud, fv0 - vd
-        a1, b1 = _distort(un + h, vn, *lens)
-        a2, b2 = _distort(un, vn + h, *lens)
+        a1, b1, _ = _distort(un + h, vn, *lens)
+        a2, b2, _ = _distort(un, vn + h, *lens)
         j11, j21, j12, j22 = (a1 - fu0) / h, (b1 - fv0) / h, (a2 - fu0) / h, (b2 - fv0) / h
         det = j11 * j22 - j12 * j21
         det = np.where(np.abs(det) < 1e-12, 1.0, det)

@@ -39,7 +39,7 @@ from .camera_net import CameraNet, check_heatmap_size
 from .config import CameraNetConfig, PipelineConfig, PointNetConfig
 from .fusion import sample_features, smooth_heatmaps
 from .keypoints import FLIP, NAMES, K
-from .labels import pseudo_labels, segmentation_labels
+from .labels import SEGMENTATION_RADIUS, pseudo_labels, segmentation_labels
 from .losses import heatmap_loss, heatmap_targets, regression_loss, segmentation_loss
 from .point_net import PointNet
 from .shards import IndexSampler, ShardLoader, ShardSet, window_shards
@@ -134,24 +134,21 @@ class _MemoryShards:
 RAY_LABEL_KEYS = ("kp2d_occluded", "crop", "intrinsic", "extrinsic", "frame_yaw")
 
 
-def stream_labels(
-    data,
-    cfg: PipelineConfig,
-    t_r: float,
-    depth_correction: bool,
-    occluded_weight: float = 0.0,
-    snap_to_rays: bool = False,
-) -> dict:
+def stream_labels(data, cfg: PipelineConfig, t_r: float, point: TrainPointConfig) -> dict:
     """Pseudo labels of every sample of a dict or ShardSet (small: [M,K] and [M,K,3]), computed one
-    shard at a time."""
+    shard at a time, as `point` (its label settings) says."""
     source = data if isinstance(data, Source) else Source(data)
     keys = ("kp2d", "kp2d_visible", "points_xyz", "points_uv", "points_count", "box3d", "sensor_xyz")
-    if occluded_weight > 0 or snap_to_rays:
+    if point.occluded_weight > 0 or point.snap_to_rays:
         keys += RAY_LABEL_KEYS
-    rays = {"occluded_weight": occluded_weight, "snap_to_rays": snap_to_rays}
+    rays = {
+        "occluded_weight": point.occluded_weight,
+        "occluded_radius": point.seg_radius,
+        "snap_to_rays": point.snap_to_rays,
+    }
     parts = [
         # chunks of 128: eq. 1 holds [chunk, K, P, 2] float64 distances (P: the widest person)
-        pseudo_labels(source.shards.read(i, keys), cfg, t_r, depth_correction, 128, **rays)
+        pseudo_labels(source.shards.read(i, keys), cfg, t_r, point.depth_correction, 128, **rays)
         for i in range(source.shards.num_shards)
     ]
     return {k: np.concatenate([p[k] for p in parts], axis=0) for k in ("kp3d", "weight", "visible")}
@@ -527,7 +524,7 @@ class TrainPointConfig:
     weight_decay: float = 1e-4
     warmup_steps: int = 50
     seg_weight: float = 0.1  # lambda
-    seg_radius: float = 0.05  # positive radius r, in units of S
+    seg_radius: float = SEGMENTATION_RADIUS  # positive radius r, in units of S
     w_pos: float = 20.0
     w_neg: float = 1.0
     # Uniform in [-x, x] about z (the paper: [0, 2 pi)); docs/results-choices.md says why 20 by default.
@@ -605,9 +602,7 @@ def train_point(
     gen, rng = seed_everything(cfg.seed)
     source = Source(data)
     if labels is None:
-        labels = stream_labels(
-            source, pipeline, t_r, cfg.depth_correction, cfg.occluded_weight, cfg.snap_to_rays
-        )
+        labels = stream_labels(source, pipeline, t_r, cfg)
     counts_np = source.column("points_count")
     usable_mask = (counts_np > 0) & (labels["weight"] > 0).any(axis=1)
     m = int(usable_mask.sum())

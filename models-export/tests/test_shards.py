@@ -123,13 +123,17 @@ def test_training_on_shards_that_fit_equals_training_on_the_arrays(synthetic_set
     assert cam_mem.loss_history == cam_shards.loss_history and same_weights(cam_mem, cam_shards)
 
     lab = labels_mod.pseudo_labels(d, cfg, t_r=200.0)
-    streamed = train.stream_labels(shards, cfg, 200.0, depth_correction=False)
+    streamed = train.stream_labels(shards, cfg, 200.0, train.TrainPointConfig(depth_correction=False))
     for k in ("kp3d", "weight", "visible"):
         np.testing.assert_array_equal(lab[k], streamed[k])
     # labels for occluded keypoints read the camera columns from the shards as well
-    occ = labels_mod.pseudo_labels(d, cfg, 200.0, True, occluded_weight=0.5, snap_to_rays=True)
-    occ_streamed = train.stream_labels(shards, cfg, 200.0, True, occluded_weight=0.5, snap_to_rays=True)
-    assert (occ["weight"] == 0.5).sum() > 0
+    # (at the config's segmentation radius: a point that near an occluded label is the occluder's)
+    rays = dict(occluded_weight=0.5, snap_to_rays=True)
+    occ = labels_mod.pseudo_labels(d, cfg, 200.0, True, occluded_radius=0.02, **rays)
+    point = train.TrainPointConfig(depth_correction=True, seg_radius=0.02, **rays)
+    occ_streamed = train.stream_labels(shards, cfg, 200.0, point)
+    at_default = labels_mod.pseudo_labels(d, cfg, 200.0, True, **rays)
+    assert (occ["weight"] == 0.5).sum() > (at_default["weight"] == 0.5).sum()
     for k in ("kp3d", "weight", "visible"):
         np.testing.assert_array_equal(occ[k], occ_streamed[k])
     # the fusion net: heatmaps precomputed over the arrays, or computed per shard as it is read
@@ -150,7 +154,7 @@ def test_training_on_shards_that_fit_equals_training_on_the_arrays(synthetic_set
     # without labels given, the run makes them as its config says, occluded ones included
     lidar = dataclasses.replace(pnet, in_features=3)
     occ_cfg = dataclasses.replace(
-        pcfg, fusion=False, depth_correction=True, occluded_weight=0.5, snap_to_rays=True
+        pcfg, fusion=False, depth_correction=True, occluded_weight=0.5, snap_to_rays=True, seg_radius=0.02
     )
     made = train.train_point(shards, None, None, cfg, lidar, occ_cfg, **quiet)
     given = train.train_point(shards, occ_streamed, None, cfg, lidar, occ_cfg, **quiet)
