@@ -132,6 +132,13 @@ def main(argv=None):
         help="with pseudo supervision: each pseudo label moved onto its 2D label's camera ray at the "
         "depth it had (labels.snapped_to_label_rays)",
     )
+    p.add_argument(
+        "--self-train",
+        type=float,
+        default=0.0,
+        help="> 0: a second round of both point nets on labels.relabelled() from the first round's "
+        "blend, its labels without a first-round label at this weight",
+    )
     p.add_argument("--limit-train", type=int)
     p.add_argument("--threads", type=int, default=0)
     a = p.parse_args(argv)
@@ -167,14 +174,19 @@ def main(argv=None):
         print(f"[{time.strftime('%H:%M:%S')}] {msg}", flush=True)
 
     lab = labels.pseudo_labels(
-        train, cfg, a.t_r, True, occluded_weight=a.occluded_weight, snap_to_rays=a.snap_to_rays
+        train,
+        cfg,
+        a.t_r,
+        True,
+        occluded_weight=a.occluded_weight,
+        snap_to_rays=a.snap_to_rays,
     )
     if a.supervision == "truth":
         lab = truth_labels(train)
     elif a.supervision == "truth-where-pseudo":
         lab = truth_labels(train, lab["visible"])
 
-    def point_net(fusion: bool, heatmaps) -> torch.nn.Module:
+    def point_net(fusion: bool, heatmaps, lab: dict = lab) -> torch.nn.Module:
         pcfg = TrainPointConfig(
             fusion=fusion, seg=True, steps=a.point_steps, seed=a.seed, depth_correction=True
         )
@@ -190,6 +202,7 @@ def main(argv=None):
         "supervision": a.supervision,
         "occluded_weight": a.occluded_weight,
         "snap_to_rays": a.snap_to_rays,
+        "self_train": a.self_train,
         "lidar_train_s": time.time() - t,
         "levels": [],
     }
@@ -213,6 +226,24 @@ def main(argv=None):
             "blend": scored((pred_fusion + pred_lidar) / 2),
             "train_s": time.time() - t,
         }
+        if a.self_train > 0:
+            blend_train = (
+                sum(
+                    predict_points(net, train["serve_xyz"], train["serve_uv"], sm, cfg)
+                    for net, sm in ((fusion, sm_train), (lidar, None))
+                )
+                / 2
+            )
+            lab2 = labels.relabelled(lab, train, blend_train, a.self_train)
+            lidar2, fusion2 = point_net(False, None, lab2), point_net(True, sm_train, lab2)
+            pred_lidar2 = predict_points(lidar2, test["serve_xyz"], test["serve_uv"], None, cfg)
+            pred_fusion2 = predict_points(fusion2, test["serve_xyz"], test["serve_uv"], sm_test, cfg)
+            level["round2"] = {
+                "fusion": scored(pred_fusion2),
+                "lidar": scored(pred_lidar2),
+                "blend": scored((pred_fusion2 + pred_lidar2) / 2),
+                "labels": int((lab2["weight"] > 0).sum()),
+            }
         results["levels"].append(level)
         (out / "results.json").write_text(json.dumps(results, indent=2))
         f, li, c = level["fusion"], level["lidar"], level["camera_only"]
@@ -221,6 +252,12 @@ def main(argv=None):
             f"vs LiDAR {li['oks_3d']:.4f} ({100 * (f['oks_3d'] - li['oks_3d']):+.2f} pt, wrists "
             f"{100 * (f['wrist'] - li['wrist']):+.1f}); blend {level['blend']['oks_3d']:.4f}"
         )
+        if "round2" in level:
+            r = level["round2"]
+            log(
+                f"round 2: fusion {r['fusion']['oks_3d']:.4f} vs LiDAR {r['lidar']['oks_3d']:.4f}; "
+                f"blend {r['blend']['oks_3d']:.4f} / {r['blend']['mpjpe_m'] * 100:.2f} cm"
+            )
 
 
 if __name__ == "__main__":

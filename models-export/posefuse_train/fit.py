@@ -40,9 +40,18 @@ from .facing_net import FacingPointNet
 from .metrics import CONVENTION
 from .point_net import Blend
 from .shards import ShardSet
-from .train import RunOptions, Stopped, checkpoint, stream_labels, train_camera, train_point
+from .train import (
+    RunOptions,
+    Stopped,
+    checkpoint,
+    second_round_labels,
+    stream_labels,
+    train_camera,
+    train_point,
+)
 
-STAGES = ("camera", "fusion", "lidar")
+# fusion2, lidar2: the second round of a self-trained recipe (point.self_train)
+STAGES = ("camera", "fusion", "lidar", "fusion2", "lidar2")
 
 
 @dataclass
@@ -258,21 +267,42 @@ def fit(a: FitArgs) -> dict | None:
         camera = as_served(camera_from_checkpoint(load_checkpoint(done("camera"))), cam_cfg.flip_test)
         camera = camera.to(device).eval()
 
-        # point nets behind it: one set of pseudo labels for both
-        labels = None
-        for stage, fusion in (("fusion", True), ("lidar", False)):
+        # point nets behind it: one set of pseudo labels for both, and with self-training a
+        # second set from the first round's nets for a second round
+        labels = {}
+
+        def labels_of(round_: int, pcfg) -> dict:
+            if round_ not in labels:
+                earlier = labels_of(1, pcfg) if round_ == 2 else None
+                t = time.time()
+                if earlier is None:
+                    labels[1] = stream_labels(train, pipeline, recipe["data"]["t_r"], pcfg)
+                else:
+                    first = tuple(
+                        point_from_checkpoint(load_checkpoint(done(s))) for s in ("fusion", "lidar")
+                    )
+                    labels[2] = second_round_labels(train, earlier, first, camera, pipeline, pcfg, device)
+                timings["labels_s" if round_ == 1 else "labels2_s"] = time.time() - t
+                log({"event": "labels", "round": round_, "persons": len(labels[round_]["weight"])})
+            return labels[round_]
+
+        for stage, fusion, round_ in _point_stages(recipe):
             pnet_cfg, pcfg = recipes.point_config(recipe, fusion)
             if done(stage).exists():
                 continue
-            if labels is None:
-                t = time.time()
-                labels = stream_labels(train, pipeline, recipe["data"]["t_r"], pcfg)
-                timings["labels_s"] = time.time() - t
-                log({"event": "labels", "persons": len(labels["weight"])})
+            stage_labels = labels_of(round_, pcfg)
             t = time.time()
             features = camera if fusion else None
             net = train_point(
-                train, labels, features, pipeline, pnet_cfg, pcfg, desc=stage, log=log.say, opts=opts(stage)
+                train,
+                stage_labels,
+                features,
+                pipeline,
+                pnet_cfg,
+                pcfg,
+                desc=stage,
+                log=log.say,
+                opts=opts(stage),
             )
             timings[f"{stage}_s"] = time.time() - t
             _finish(log, d, net, pipeline, pcfg, a.train, done(stage), stage, timings)
@@ -287,7 +317,8 @@ def fit(a: FitArgs) -> dict | None:
     # the bundle is exported from the saved stage networks: plain modules, the weights on disk
     cam_ckpt = load_checkpoint(done("camera"))
     camera = as_served(camera_from_checkpoint(cam_ckpt), cam_cfg.flip_test)
-    nets = {s: point_from_checkpoint(load_checkpoint(done(s))) for s in ("fusion", "lidar")}
+    last = {stage.rstrip("2"): stage for stage, _, _ in _point_stages(recipe)}
+    nets = {s: point_from_checkpoint(load_checkpoint(done(last[s]))) for s in ("fusion", "lidar")}
     facing = None
     if a.facing_from:
         nets, facing = _with_facing(a, nets)
@@ -304,6 +335,14 @@ def fit(a: FitArgs) -> dict | None:
     log({"event": "done", "time_s": timings})
     d.barrier()
     return json.loads(text)
+
+
+def _point_stages(recipe: dict) -> list[tuple[str, bool, int]]:
+    """(stage, fusion, label round) of the point nets, in training order."""
+    first = [("fusion", True, 1), ("lidar", False, 1)]
+    if recipe["point"].get("self_train", 0.0) > 0:
+        return first + [("fusion2", True, 2), ("lidar2", False, 2)]
+    return first
 
 
 def run_times(log_path: Path) -> list[float]:

@@ -120,6 +120,27 @@ def occluded_labels(data: dict, near: np.ndarray, radius: float) -> tuple[np.nda
     return np.where(mask[..., None], kp3d, 0.0).astype(np.float32), mask
 
 
+def relabelled(lab: dict, data: dict, pred: np.ndarray, other_weight: float) -> dict:
+    """A second round of labels from the first round's `lab` (pseudo_labels()) and predictions
+    `pred` [M,K,3] (model-input coordinates) of networks trained on it, every label on its 2D
+    label's camera ray. A 2D label with a first-round label keeps its weight and takes the mean of
+    its label's depth and the prediction's (the points' evidence and the pose's); every other
+    finite 2D label, visible or occluded, takes the prediction's depth, at `other_weight`.
+    `visible` is the first round's: segmentation still reads only what the points showed."""
+    box, yaw, ext = data["box3d"], data["frame_yaw"], data["extrinsic"]
+    depth_pred = metrics.camera_depth(metrics.local_to_vehicle(pred, box, yaw), ext)
+    depth_lab = metrics.camera_depth(metrics.local_to_vehicle(lab["kp3d"], box, yaw), ext)
+    ok = lab["visible"] & (lab["weight"] > 0)
+    kp3d = on_label_rays(data, np.where(ok, 0.5 * (depth_lab + depth_pred), depth_pred))
+    finite = np.isfinite(kp3d).all(axis=2)
+    kept = ok & finite
+    other = ~ok & finite & np.isfinite(data["kp2d"]).all(axis=2)
+    other &= (np.asarray(data["kp2d_visible"]) > 0) | (np.asarray(data["kp2d_occluded"]) > 0)
+    weight = np.where(kept, lab["weight"], np.where(other, other_weight, 0.0)).astype(np.float32)
+    kp3d = np.where((weight > 0)[..., None], kp3d, 0.0).astype(np.float32)
+    return {"kp3d": kp3d, "weight": weight, "visible": lab["visible"]}
+
+
 def segmentation_labels(kp_uv, kp_visible, points_uv, image_size: int, radius: float):
     """l_ik = 1 when point i's projection is within `radius` (S units) of visible keypoint k.
     Works on numpy arrays or torch tensors: [B,K,2], [B,K], [B,N,2] -> [B,N,K] float."""

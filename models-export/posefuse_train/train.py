@@ -39,7 +39,7 @@ from .camera_net import CameraNet, check_heatmap_size
 from .config import CameraNetConfig, PipelineConfig, PointNetConfig
 from .fusion import sample_features, smooth_heatmaps
 from .keypoints import FLIP, NAMES, K
-from .labels import SEGMENTATION_RADIUS, pseudo_labels, segmentation_labels
+from .labels import SEGMENTATION_RADIUS, pseudo_labels, relabelled, segmentation_labels
 from .losses import heatmap_loss, heatmap_targets, regression_loss, segmentation_loss
 from .point_net import PointNet
 from .shards import IndexSampler, ShardLoader, ShardSet, window_shards
@@ -151,6 +151,28 @@ def stream_labels(data, cfg: PipelineConfig, t_r: float, point: TrainPointConfig
         pseudo_labels(source.shards.read(i, keys), cfg, t_r, point.depth_correction, 128, **rays)
         for i in range(source.shards.num_shards)
     ]
+    return {k: np.concatenate([p[k] for p in parts], axis=0) for k in ("kp3d", "weight", "visible")}
+
+
+@torch.no_grad()
+def second_round_labels(
+    data, first: dict, nets: tuple, camera: torch.nn.Module, pipeline: PipelineConfig, cfg, device="cpu"
+) -> dict:
+    """labels.relabelled() of every sample of a dict or ShardSet, one shard at a time: the first
+    round's labels `first` and the mean answer of its `nets` (fusion, LiDAR-only; on the CPU), the
+    fusion net reading `camera`'s heatmaps, as served. `cfg`: the TrainPointConfig (self_train)."""
+    source = data if isinstance(data, Source) else Source(data)
+    keys = ("image", "serve_xyz", "serve_uv", "kp2d", "kp2d_visible", "box3d") + RAY_LABEL_KEYS
+    heatmaps = shard_heatmaps(camera.to(device).eval(), pipeline, device)
+    fusion, lidar = (net.cpu().eval() for net in nets)
+    offsets, parts = source.shards.offsets, []
+    for i in range(source.shards.num_shards):
+        arrays = heatmaps(i, source.shards.read(i, keys))
+        xyz, uv = arrays["serve_xyz"], arrays["serve_uv"]
+        pred = predict_points(fusion, xyz, uv, arrays["smoothed"], pipeline)
+        pred = (pred + predict_points(lidar, xyz, uv, None, pipeline)) / 2
+        mine = slice(int(offsets[i]), int(offsets[i + 1]))
+        parts.append(relabelled({k: v[mine] for k, v in first.items()}, arrays, pred, cfg.self_train))
     return {k: np.concatenate([p[k] for p in parts], axis=0) for k in ("kp3d", "weight", "visible")}
 
 
@@ -537,6 +559,9 @@ class TrainPointConfig:
     occluded_weight: float = 0.0
     # each eq. 1 label moved onto its 2D label's camera ray at its own depth (labels.snapped_to_label_rays)
     snap_to_rays: bool = False
+    # > 0: both point nets trained a second time, on labels.relabelled() from the first round's
+    # blend; the 2D labels without a first-round label at this weight (docs/TRAINING.md, "Self-training")
+    self_train: float = 0.0
 
 
 def select_points(counts: torch.Tensor, n: int, p: int, gen: torch.Generator) -> torch.Tensor:

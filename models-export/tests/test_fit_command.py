@@ -84,6 +84,7 @@ def test_fit_writes_a_scored_bundle_that_states_how_it_was_made(uninterrupted):
     log = records(out.with_name("bundle.work"))
     steps = [(r["stage"], r["step"]) for r in log if "loss" in r]
     assert ("camera", 5) in steps and ("fusion", 5) in steps and ("lidar", 5) in steps
+    assert not any(stage.endswith("2") for stage, _ in steps)  # no second round unless asked for
     assert all(r["samples_per_s"] > 0 and r["lr"] > 0 for r in log if "loss" in r)
     assert {r["mode"] for r in log if r.get("event") == "held_out"} == {"fusion", "lidar", "camera"}
 
@@ -348,6 +349,32 @@ def test_blend_exports_the_mean_of_the_runs_point_nets_as_its_fusion_graph(
     assert len(runs) == 2 and runs[0] >= 0.5 * first["training"]["time_s"]["total_s"]
     assert manifest["training"]["time_s"]["all_runs_s"] == round(sum(runs), 1)
     assert first["training"]["time_s"]["runs_s"] == [first["training"]["time_s"]["all_runs_s"]]
+
+
+def test_self_training_trains_a_second_round_behind_the_first_and_exports_it(
+    synthetic_sets, uninterrupted, tmp_path
+):
+    """docs/TRAINING.md, "Self-training": a finished run's work directory, resumed with
+    point.self_train, keeps its first round, trains fusion2 and lidar2 on the second round's labels
+    and exports those."""
+    first_out, first = uninterrupted
+    work = tmp_path / "bundle.work"
+    shutil.copytree(first_out.with_name("bundle.work"), work)
+    saved = json.loads((work / "recipe.json").read_text())
+    saved["point"]["self_train"] = 0.5
+    (work / "recipe.json").write_text(json.dumps(saved))
+    a = args(synthetic_sets, tmp_path / "bundle", work=work, resume=True)
+    a.overrides = (*TINY, "point.self_train=0.5")
+    manifest = fit(a)
+    assert equal(stage_weights(work), stage_weights(first_out.with_name("bundle.work")))
+    second = {s: torch.load(work / f"{s}2.pt", weights_only=False)["state_dict"] for s in ("fusion", "lidar")}
+    assert not equal({"lidar": second["lidar"]}, {"lidar": stage_weights(work)["lidar"]})
+    log = records(work)
+    assert [r["round"] for r in log if r.get("event") == "labels"][-1] == 2
+    assert {("fusion2", 5), ("lidar2", 5)} <= {(r["stage"], r["step"]) for r in log if "loss" in r}
+    held, before = manifest["metrics"]["held_out"], first["metrics"]["held_out"]
+    assert held["lidar"] != before["lidar"] and held["camera"] == before["camera"]
+    assert manifest["training"]["time_s"]["labels2_s"] > 0
 
 
 def test_run_times_measure_each_invocation_from_its_start_to_its_last_record(tmp_path):

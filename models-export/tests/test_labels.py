@@ -149,3 +149,41 @@ def test_snapped_labels_keep_their_depth_and_land_on_the_2d_labels_rays(syntheti
     np.testing.assert_allclose(px[ok], d["kp2d"][ok], atol=1e-3)
     moved = np.linalg.norm(snap["kp3d"] - base["kp3d"], axis=2)[ok]
     assert moved.mean() > 0.005  # eq. 1's labels were beside the rays
+
+
+def test_relabelled_puts_every_2d_label_on_its_ray_at_the_depth_the_first_round_and_the_nets_give(
+    synthetic_sets,
+):
+    d, cfg, _ = load(synthetic_sets[0])
+    # a keypoint without a label has a finite 2D position in converted Waymo data ([0, 0])
+    unlabelled = np.zeros_like(d["kp2d_visible"], bool)
+    unlabelled[::3, 5] = True
+    d = dict(d, kp2d=np.where(unlabelled[..., None], 0.0, d["kp2d"]))
+    d.update({k: np.where(unlabelled, 0, d[k]) for k in ("kp2d_visible", "kp2d_occluded")})
+    lab = labels.pseudo_labels(d, cfg, t_r=200.0, depth_correction=True, occluded_weight=0.5)
+    # a first round's prediction: the labels where there are some, the box centre elsewhere,
+    # moved 0.3 m deeper (the synthetic camera looks along +x from the origin: depth is x)
+    vehicle_lab = metrics.local_to_vehicle(lab["kp3d"], d["box3d"], d["frame_yaw"])
+    start = np.where((lab["weight"] > 0)[..., None], vehicle_lab, d["box3d"][:, None, :3])
+    pred = metrics.vehicle_to_local(start + [0.3, 0.0, 0.0], d["box3d"], d["frame_yaw"])
+    two = labels.relabelled(lab, d, pred, 0.25)
+    np.testing.assert_array_equal(two["visible"], lab["visible"])
+    ok = lab["visible"]
+    labelled = (d["kp2d_visible"] > 0) | (d["kp2d_occluded"] > 0)
+    assert ok.sum() > 20 and (labelled & ~ok).sum() > 20
+    # first-round labels keep their weights, every other labelled 2D keypoint gets the given one
+    np.testing.assert_array_equal(two["weight"][ok], lab["weight"][ok])
+    np.testing.assert_allclose(two["weight"][labelled & ~ok], 0.25)
+    assert not two["weight"][~labelled].any() and not two["kp3d"][~labelled].any()
+    assert np.isfinite(d["kp2d"][unlabelled]).all() and unlabelled.sum() > 5
+    # depths: the mean of the label's and the prediction's where there was a label, else the prediction's
+    vs = metrics.local_to_vehicle(two["kp3d"], d["box3d"], d["frame_yaw"])
+    np.testing.assert_allclose(vs[..., 0][ok], vehicle_lab[..., 0][ok] + 0.15, atol=1e-4)
+    other = labelled & ~ok
+    np.testing.assert_allclose(
+        vs[..., 0][other], (d["box3d"][:, None, 0] + 0.3).repeat(13, 1)[other], atol=1e-4
+    )
+    # ... and each on its 2D label's ray
+    crop = d["crop"].astype(np.float64)
+    px = (metrics.project(vs, d["intrinsic"], d["extrinsic"]) - crop[:, None, :2]) * crop[:, None, 2:3]
+    np.testing.assert_allclose(px[labelled], d["kp2d"][labelled], atol=1e-3)

@@ -163,6 +163,17 @@ def test_training_on_shards_that_fit_equals_training_on_the_arrays(synthetic_set
         other = dataclasses.replace(occ_cfg, **plain)
         without = train.train_point(shards, None, None, cfg, lidar, other, **quiet)
         assert without.loss_history != made.loss_history, plain
+    # a second round's labels: the first round's nets' mean answer (the fusion net on the camera's
+    # heatmaps) shard by shard, as over the arrays in memory
+    assert shards.num_shards > 1
+    second = dataclasses.replace(occ_cfg, self_train=0.25)
+    streamed2 = train.second_round_labels(shards, occ_streamed, (pt_mem, made), cam_mem, cfg, second)
+    xyz, uv = d["serve_xyz"], d["serve_uv"]
+    answer = train.predict_points(pt_mem, xyz, uv, sm, cfg) + train.predict_points(made, xyz, uv, None, cfg)
+    in_memory = labels_mod.relabelled(occ_streamed, d, answer / 2, 0.25)
+    for k in ("kp3d", "weight", "visible"):
+        np.testing.assert_allclose(streamed2[k], in_memory[k], atol=1e-5)
+    assert (streamed2["weight"] == 0.25).sum() > (occ_streamed["weight"] == 0.5).sum()
 
 
 @pytest.mark.parametrize("memory_mb", [0.0, 0.05])
