@@ -19,6 +19,7 @@ import datetime as dt
 import json
 import os
 import platform
+import re
 import shlex
 import shutil
 import subprocess
@@ -44,14 +45,14 @@ from .train import (
     RunOptions,
     Stopped,
     checkpoint,
-    second_round_labels,
+    next_round_labels,
     stream_labels,
     train_camera,
     train_point,
 )
 
-# fusion2, lidar2: the second round of a self-trained recipe (point.self_train)
-STAGES = ("camera", "fusion", "lidar", "fusion2", "lidar2")
+# and fusionN, lidarN: round N of a self-trained recipe (point.self_train, point.self_train_rounds)
+STAGES = ("camera", "fusion", "lidar")
 
 
 @dataclass
@@ -162,8 +163,10 @@ def _stop_at(a: FitArgs, stage: str) -> int:
     if not a.stop_after:
         return 0
     name, _, step = a.stop_after.partition(":")
-    if name not in STAGES or not step.isdigit():
-        raise SystemExit(f"--stop-after {a.stop_after!r}: expected STAGE:STEP with STAGE in {STAGES}")
+    if not re.fullmatch(r"camera|(fusion|lidar)([2-9]|[1-9][0-9]+)?", name) or not step.isdigit():
+        raise SystemExit(
+            f"--stop-after {a.stop_after!r}: expected STAGE:STEP with STAGE in {STAGES} (or fusionN, lidarN)"
+        )
     return int(step) if name == stage else 0
 
 
@@ -267,22 +270,23 @@ def fit(a: FitArgs) -> dict | None:
         camera = as_served(camera_from_checkpoint(load_checkpoint(done("camera"))), cam_cfg.flip_test)
         camera = camera.to(device).eval()
 
-        # point nets behind it: one set of pseudo labels for both, and with self-training a
-        # second set from the first round's nets for a second round
+        # point nets behind it: one set of pseudo labels for both, and with self-training one
+        # set per further round from the round before's nets
         labels = {}
 
         def labels_of(round_: int, pcfg) -> dict:
             if round_ not in labels:
-                earlier = labels_of(1, pcfg) if round_ == 2 else None
+                first = labels_of(1, pcfg) if round_ > 1 else None
                 t = time.time()
-                if earlier is None:
+                if first is None:
                     labels[1] = stream_labels(train, pipeline, recipe["data"]["t_r"], pcfg)
                 else:
-                    first = tuple(
-                        point_from_checkpoint(load_checkpoint(done(s))) for s in ("fusion", "lidar")
+                    before = tuple(
+                        point_from_checkpoint(load_checkpoint(done(_stage_name(s, round_ - 1))))
+                        for s in ("fusion", "lidar")
                     )
-                    labels[2] = second_round_labels(train, earlier, first, camera, pipeline, pcfg, device)
-                timings["labels_s" if round_ == 1 else "labels2_s"] = time.time() - t
+                    labels[round_] = next_round_labels(train, first, before, camera, pipeline, pcfg, device)
+                timings["labels_s" if round_ == 1 else f"labels{round_}_s"] = time.time() - t
                 log({"event": "labels", "round": round_, "persons": len(labels[round_]["weight"])})
             return labels[round_]
 
@@ -317,8 +321,10 @@ def fit(a: FitArgs) -> dict | None:
     # the bundle is exported from the saved stage networks: plain modules, the weights on disk
     cam_ckpt = load_checkpoint(done("camera"))
     camera = as_served(camera_from_checkpoint(cam_ckpt), cam_cfg.flip_test)
-    last = {stage.rstrip("2"): stage for stage, _, _ in _point_stages(recipe)}
-    nets = {s: point_from_checkpoint(load_checkpoint(done(last[s]))) for s in ("fusion", "lidar")}
+    last = _point_stages(recipe)[-1][2]
+    nets = {
+        s: point_from_checkpoint(load_checkpoint(done(_stage_name(s, last)))) for s in ("fusion", "lidar")
+    }
     facing = None
     if a.facing_from:
         nets, facing = _with_facing(a, nets)
@@ -338,11 +344,15 @@ def fit(a: FitArgs) -> dict | None:
 
 
 def _point_stages(recipe: dict) -> list[tuple[str, bool, int]]:
-    """(stage, fusion, label round) of the point nets, in training order."""
-    first = [("fusion", True, 1), ("lidar", False, 1)]
-    if recipe["point"].get("self_train", 0.0) > 0:
-        return first + [("fusion2", True, 2), ("lidar2", False, 2)]
-    return first
+    """(stage, fusion, label round) of the point nets, in training order: one round, and with
+    self-training `self_train_rounds` more."""
+    point = recipe["point"]
+    rounds = 1 + (int(point.get("self_train_rounds", 1)) if point.get("self_train", 0.0) > 0 else 0)
+    return [(_stage_name(s, r), s == "fusion", r) for r in range(1, rounds + 1) for s in ("fusion", "lidar")]
+
+
+def _stage_name(net: str, round_: int) -> str:
+    return net if round_ == 1 else f"{net}{round_}"
 
 
 def run_times(log_path: Path) -> list[float]:

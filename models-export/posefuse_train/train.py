@@ -155,12 +155,13 @@ def stream_labels(data, cfg: PipelineConfig, t_r: float, point: TrainPointConfig
 
 
 @torch.no_grad()
-def second_round_labels(
+def next_round_labels(
     data, first: dict, nets: tuple, camera: torch.nn.Module, pipeline: PipelineConfig, cfg, device="cpu"
 ) -> dict:
     """labels.relabelled() of every sample of a dict or ShardSet, one shard at a time: the first
-    round's labels `first` and the mean answer of its `nets` (fusion, LiDAR-only; on the CPU), the
-    fusion net reading `camera`'s heatmaps, as served. `cfg`: the TrainPointConfig (self_train)."""
+    round's labels `first` and the mean answer of the round before's `nets` (fusion, LiDAR-only;
+    on the CPU), the fusion net reading `camera`'s heatmaps, as served. `cfg`: the
+    TrainPointConfig (self_train)."""
     source = data if isinstance(data, Source) else Source(data)
     keys = ("image", "serve_xyz", "serve_uv", "kp2d", "kp2d_visible", "box3d") + RAY_LABEL_KEYS
     heatmaps = shard_heatmaps(camera.to(device).eval(), pipeline, device)
@@ -559,9 +560,11 @@ class TrainPointConfig:
     occluded_weight: float = 0.0
     # each eq. 1 label moved onto its 2D label's camera ray at its own depth (labels.snapped_to_label_rays)
     snap_to_rays: bool = False
-    # > 0: both point nets trained a second time, on labels.relabelled() from the first round's
-    # blend; the 2D labels without a first-round label at this weight (docs/TRAINING.md, "Self-training")
+    # > 0: both point nets trained again, self_train_rounds times, each round on labels.relabelled()
+    # from the round before's blend; the 2D labels without a first-round label at this weight
+    # (docs/TRAINING.md, "Self-training")
     self_train: float = 0.0
+    self_train_rounds: int = 1
 
 
 def select_points(counts: torch.Tensor, n: int, p: int, gen: torch.Generator) -> torch.Tensor:

@@ -351,30 +351,46 @@ def test_blend_exports_the_mean_of_the_runs_point_nets_as_its_fusion_graph(
     assert first["training"]["time_s"]["runs_s"] == [first["training"]["time_s"]["all_runs_s"]]
 
 
-def test_self_training_trains_a_second_round_behind_the_first_and_exports_it(
+def test_self_training_trains_further_rounds_behind_the_first_and_exports_the_last(
     synthetic_sets, uninterrupted, tmp_path
 ):
     """docs/TRAINING.md, "Self-training": a finished run's work directory, resumed with
-    point.self_train, keeps its first round, trains fusion2 and lidar2 on the second round's labels
-    and exports those."""
+    point.self_train and two rounds, keeps its first round, trains fusion2/lidar2 and then
+    fusion3/lidar3, each on labels from the round before's nets, and exports the last."""
     first_out, first = uninterrupted
     work = tmp_path / "bundle.work"
     shutil.copytree(first_out.with_name("bundle.work"), work)
     saved = json.loads((work / "recipe.json").read_text())
-    saved["point"]["self_train"] = 0.5
+    saved["point"].update(self_train=0.5, self_train_rounds=2)
     (work / "recipe.json").write_text(json.dumps(saved))
     a = args(synthetic_sets, tmp_path / "bundle", work=work, resume=True)
-    a.overrides = (*TINY, "point.self_train=0.5")
+    a.overrides = (*TINY, "point.self_train=0.5", "point.self_train_rounds=2")
     manifest = fit(a)
     assert equal(stage_weights(work), stage_weights(first_out.with_name("bundle.work")))
-    second = {s: torch.load(work / f"{s}2.pt", weights_only=False)["state_dict"] for s in ("fusion", "lidar")}
-    assert not equal({"lidar": second["lidar"]}, {"lidar": stage_weights(work)["lidar"]})
+    later = {s: torch.load(work / f"{s}.pt", weights_only=False)["state_dict"] for s in ("lidar2", "lidar3")}
+    assert not equal({"x": later["lidar2"]}, {"x": stage_weights(work)["lidar"]})
+    assert not equal({"x": later["lidar3"]}, {"x": later["lidar2"]})
     log = records(work)
-    assert [r["round"] for r in log if r.get("event") == "labels"][-1] == 2
-    assert {("fusion2", 5), ("lidar2", 5)} <= {(r["stage"], r["step"]) for r in log if "loss" in r}
+    assert [r["round"] for r in log if r.get("event") == "labels"][-3:] == [1, 2, 3]
+    stages = {(r["stage"], r["step"]) for r in log if "loss" in r}
+    assert {("fusion2", 5), ("lidar2", 5), ("fusion3", 5), ("lidar3", 5)} <= stages
     held, before = manifest["metrics"]["held_out"], first["metrics"]["held_out"]
     assert held["lidar"] != before["lidar"] and held["camera"] == before["camera"]
-    assert manifest["training"]["time_s"]["labels2_s"] > 0
+    time_s = manifest["training"]["time_s"]
+    assert time_s["labels2_s"] > 0 and time_s["labels3_s"] > 0
+    # the bundle is the last round's: exporting round 3's nets again gives its held-out metrics
+    work2 = tmp_path / "again.work"
+    shutil.copytree(work, work2)
+    for net in ("fusion", "lidar"):
+        shutil.copyfile(work / f"{net}3.pt", work2 / f"{net}.pt")
+    saved["point"].update(self_train=0.0)
+    (work2 / "recipe.json").write_text(json.dumps(saved))
+    b = args(synthetic_sets, tmp_path / "again", work=work2, resume=True)
+    b.overrides = (*TINY, "point.self_train=0.0", "point.self_train_rounds=2")
+    assert fit(b)["metrics"]["held_out"]["lidar"] == held["lidar"]
+    # --stop-after names a later round's stage
+    with pytest.raises(SystemExit, match="fusionN"):
+        fit(args(synthetic_sets, tmp_path / "x", stop_after="lidar1:3"))
 
 
 def test_run_times_measure_each_invocation_from_its_start_to_its_last_record(tmp_path):

@@ -167,7 +167,7 @@ def test_training_on_shards_that_fit_equals_training_on_the_arrays(synthetic_set
     # heatmaps) shard by shard, as over the arrays in memory
     assert shards.num_shards > 1
     second = dataclasses.replace(occ_cfg, self_train=0.25)
-    streamed2 = train.second_round_labels(shards, occ_streamed, (pt_mem, made), cam_mem, cfg, second)
+    streamed2 = train.next_round_labels(shards, occ_streamed, (pt_mem, made), cam_mem, cfg, second)
     xyz, uv = d["serve_xyz"], d["serve_uv"]
     answer = train.predict_points(pt_mem, xyz, uv, sm, cfg) + train.predict_points(made, xyz, uv, None, cfg)
     in_memory = labels_mod.relabelled(occ_streamed, d, answer / 2, 0.25)
