@@ -76,6 +76,15 @@ def test_the_command_trains_one_lidar_net_and_a_fusion_net_per_level(synthetic_s
     )
     r = json.loads((truth / "results.json").read_text())
     assert r["supervision"] == "truth" and len(r["levels"]) == 1
+    # with --self-train, each level also trains and scores a second round
+    rounds = tmp_path / "rounds"
+    camera_quality.main(
+        ["--train", str(train), "--test", str(test), "--out", str(rounds), *common, "--self-train", "0.5"]
+    )
+    r = json.loads((rounds / "results.json").read_text())
+    second = r["levels"][0]["round2"]
+    assert r["self_train"] == 0.5 and set(second) == {"fusion", "lidar", "blend", "labels"}
+    assert second["labels"] > 0 and second["lidar"]["mpjpe_m"] != r["levels"][0]["lidar"]["mpjpe_m"]
 
 
 def test_truth_labels_are_every_labelled_3d_keypoint_at_weight_one(synthetic_sets):
