@@ -33,7 +33,7 @@ from posefuse_train.fusion import smoothed
 from posefuse_train.keypoints import FLIP, K
 from posefuse_train.losses import heatmap_targets
 from posefuse_train.metrics import labelled
-from posefuse_train.train import TrainPointConfig, predict_points, train_point
+from posefuse_train.train import TrainPointConfig, next_round_labels, predict_points, train_point
 
 from .report import part_oks
 
@@ -227,14 +227,8 @@ def main(argv=None):
             "train_s": time.time() - t,
         }
         if a.self_train > 0:
-            blend_train = (
-                sum(
-                    predict_points(net, train["serve_xyz"], train["serve_uv"], sm, cfg)
-                    for net, sm in ((fusion, sm_train), (lidar, None))
-                )
-                / 2
-            )
-            lab2 = labels.relabelled(lab, train, blend_train, a.self_train)
+            second = TrainPointConfig(self_train=a.self_train)
+            lab2 = next_round_labels(train, lab, (fusion, lidar), sm_train, cfg, second)
             lidar2, fusion2 = point_net(False, None, lab2), point_net(True, sm_train, lab2)
             pred_lidar2 = predict_points(lidar2, test["serve_xyz"], test["serve_uv"], None, cfg)
             pred_fusion2 = predict_points(fusion2, test["serve_xyz"], test["serve_uv"], sm_test, cfg)

@@ -156,23 +156,27 @@ def stream_labels(data, cfg: PipelineConfig, t_r: float, point: TrainPointConfig
 
 @torch.no_grad()
 def next_round_labels(
-    data, first: dict, nets: tuple, camera: torch.nn.Module, pipeline: PipelineConfig, cfg, device="cpu"
+    data, first: dict, nets: tuple, smoothed, pipeline: PipelineConfig, cfg, device="cpu"
 ) -> dict:
     """labels.relabelled() of every sample of a dict or ShardSet, one shard at a time: the first
     round's labels `first` and the mean answer of the round before's `nets` (fusion, LiDAR-only;
-    on the CPU), the fusion net reading `camera`'s heatmaps, as served. `cfg`: the
+    on the CPU), the fusion net reading `smoothed` as train_point() does (the camera net, whose
+    heatmaps are computed per shard as served, or every sample's smoothed heatmaps). `cfg`: the
     TrainPointConfig (self_train)."""
     source = data if isinstance(data, Source) else Source(data)
-    keys = ("image", "serve_xyz", "serve_uv", "kp2d", "kp2d_visible", "box3d") + RAY_LABEL_KEYS
-    heatmaps = shard_heatmaps(camera.to(device).eval(), pipeline, device)
+    keys = ("serve_xyz", "serve_uv", "kp2d", "kp2d_visible", "box3d") + RAY_LABEL_KEYS
+    camera = isinstance(smoothed, torch.nn.Module)
+    heatmaps = shard_heatmaps(smoothed.to(device).eval(), pipeline, device) if camera else None
     fusion, lidar = (net.cpu().eval() for net in nets)
     offsets, parts = source.shards.offsets, []
     for i in range(source.shards.num_shards):
-        arrays = heatmaps(i, source.shards.read(i, keys))
-        xyz, uv = arrays["serve_xyz"], arrays["serve_uv"]
-        pred = predict_points(fusion, xyz, uv, arrays["smoothed"], pipeline)
-        pred = (pred + predict_points(lidar, xyz, uv, None, pipeline)) / 2
         mine = slice(int(offsets[i]), int(offsets[i + 1]))
+        arrays = source.shards.read(i, keys + ("image",) if camera else keys)
+        sm = heatmaps(i, arrays)["smoothed"] if camera else smoothed[mine]
+        xyz, uv = arrays["serve_xyz"], arrays["serve_uv"]
+        pred = (
+            predict_points(fusion, xyz, uv, sm, pipeline) + predict_points(lidar, xyz, uv, None, pipeline)
+        ) / 2
         parts.append(relabelled({k: v[mine] for k, v in first.items()}, arrays, pred, cfg.self_train))
     return {k: np.concatenate([p[k] for p in parts], axis=0) for k in ("kp3d", "weight", "visible")}
 

@@ -171,8 +171,10 @@ def test_training_on_shards_that_fit_equals_training_on_the_arrays(synthetic_set
     xyz, uv = d["serve_xyz"], d["serve_uv"]
     answer = train.predict_points(pt_mem, xyz, uv, sm, cfg) + train.predict_points(made, xyz, uv, None, cfg)
     in_memory = labels_mod.relabelled(occ_streamed, d, answer / 2, 0.25)
+    given = train.next_round_labels(d, occ_streamed, (pt_mem, made), sm, cfg, second)  # heatmaps given
     for k in ("kp3d", "weight", "visible"):
         np.testing.assert_allclose(streamed2[k], in_memory[k], atol=1e-5)
+        np.testing.assert_array_equal(given[k], in_memory[k])
     assert (streamed2["weight"] == 0.25).sum() > (occ_streamed["weight"] == 0.5).sum()
 
 
