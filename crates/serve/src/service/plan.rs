@@ -64,11 +64,13 @@ pub fn planned_inputs(frame: Frame, cfg: &PipelineConfig) -> Result<Vec<PlannedI
     Ok(plan.persons.into_iter().map(|p| PlannedInput { mode: p.mode, image: p.image_input, points: p.input }).collect())
 }
 
-/// Stops a frame's pre-processing once nobody waits for it.
+/// Stops a frame's pre-processing once nobody waits for it. The error is `ClientGone`, not a
+/// server failure: whoever reads it (a log, a caller that kept the result) must not count the
+/// server as unavailable for a request that stopped being wanted.
 pub(super) fn still_wanted(abandoned: &AtomicBool) -> Result<()> {
     if abandoned.load(Ordering::Relaxed) {
         metrics::counter!("posefuse_frames_abandoned_total").increment(1);
-        return Err(Error::Unavailable("the request was abandoned (deadline passed or client gone)".into()));
+        return Err(Error::ClientGone("the request was abandoned (deadline passed or client gone)".into()));
     }
     Ok(())
 }
@@ -394,6 +396,17 @@ mod tests {
         }
         assert_eq!(crops.cut, 0);
         assert!(crops.failure(0).is_some());
+    }
+
+    #[test]
+    fn an_abandoned_frame_is_not_planned_and_is_not_a_server_failure() {
+        let (cfg, gone) = (PipelineConfig::with_image_size(64), AtomicBool::new(true));
+        let mut valid = ValidFrame::new(frame(), None, &FrameLimits::DEFAULT).unwrap();
+        let mut crops = CropCache::default();
+        let boxes = valid.boxes();
+        let e = plan_frame(&mut valid, &boxes, &cfg, &mut crops, &gone).err().unwrap();
+        assert!(matches!(e, Error::ClientGone(_)), "{e:?}");
+        assert_eq!(crops.cut, 0);
     }
 
     #[test]
