@@ -6,8 +6,9 @@ the versions, the metrics and the time.
     python -m posefuse_train fit --train data/street_train --test data/street_test --out models/mine
 
 A run keeps its state in a work directory (default: OUT.work): the resolved recipe, log.jsonl
-(losses every 50 steps, the held-out metrics at the end), each stage's resumable checkpoint and,
-once a stage is done, its network (camera.pt, fusion.pt, lidar.pt). `--resume` continues an
+(losses every 50 steps, the held-out metrics at the end), each round's pseudo labels
+(labelsN.npz), each stage's resumable checkpoint and, once a stage is done, its network
+(camera.pt, fusion.pt, lidar.pt). `--resume` continues an
 interrupted run from there to the same weights as an uninterrupted one (same device and number
 of processes). Under `torchrun --nproc-per-node N` the stages run data-parallel (DDP); rank 0
 writes everything.
@@ -36,7 +37,7 @@ import torch
 from . import __version__, bundle_eval, distributed
 from . import recipe as recipes
 from .camera_net import CameraNet, FlipTest, as_served
-from .export import camera_from_checkpoint, export_bundle, load_checkpoint, point_from_checkpoint
+from .export import camera_from_checkpoint, export_bundle, load_checkpoint, point_from_checkpoint, sha256
 from .facing_net import FacingPointNet
 from .metrics import CONVENTION
 from .point_net import Blend
@@ -51,6 +52,8 @@ from .train import (
     train_point,
 )
 
+# what a round's pseudo labels hold (train.stream_labels, train.next_round_labels)
+LABEL_KEYS = ("kp3d", "weight", "visible")
 # and fusionN, lidarN: round N of a self-trained recipe (point.self_train, point.self_train_rounds)
 STAGES = ("camera", "fusion", "lidar")
 
@@ -277,17 +280,35 @@ def fit(a: FitArgs) -> dict | None:
         def labels_of(round_: int, pcfg) -> dict:
             if round_ not in labels:
                 first = labels_of(1, pcfg) if round_ > 1 else None
+                made_from = (
+                    ["camera", *(_stage_name(s, round_ - 1) for s in ("fusion", "lidar"))]
+                    if round_ > 1
+                    else []
+                )
+                key = {
+                    "round": round_,
+                    "train": train.describe(),
+                    "settings": _label_settings(recipe, pipeline, pcfg, round_),
+                    "nets": {n: sha256(done(n)) for n in made_from},
+                }
                 t = time.time()
-                if first is None:
-                    labels[1] = stream_labels(train, pipeline, recipe["data"]["t_r"], pcfg)
-                else:
-                    before = tuple(
-                        point_from_checkpoint(load_checkpoint(done(_stage_name(s, round_ - 1))))
-                        for s in ("fusion", "lidar")
-                    )
-                    labels[round_] = next_round_labels(train, first, before, camera, pipeline, pcfg, device)
+
+                def make() -> dict:
+                    if first is None:
+                        return stream_labels(train, pipeline, recipe["data"]["t_r"], pcfg)
+                    before = tuple(point_from_checkpoint(load_checkpoint(done(n))) for n in made_from[1:])
+                    return next_round_labels(train, first, before, camera, pipeline, pcfg, device)
+
+                labels[round_], kept = _kept_labels(work / f"labels{round_}.npz", key, make, d.main)
                 timings["labels_s" if round_ == 1 else f"labels{round_}_s"] = time.time() - t
-                log({"event": "labels", "round": round_, "persons": len(labels[round_]["weight"])})
+                log(
+                    {
+                        "event": "labels",
+                        "round": round_,
+                        "persons": len(labels[round_]["weight"]),
+                        "kept": kept,
+                    }
+                )
             return labels[round_]
 
         for stage, fusion, round_ in _point_stages(recipe):
@@ -341,6 +362,38 @@ def fit(a: FitArgs) -> dict | None:
     log({"event": "done", "time_s": timings})
     d.barrier()
     return json.loads(text)
+
+
+def _label_settings(recipe: dict, pipeline, pcfg, round_: int) -> dict:
+    """What a round's labels are made with besides the data and the nets (train.stream_labels,
+    labels.relabelled); not the rest of the recipe, so that adding a round to a finished run keeps
+    the labels it made."""
+    keep = ("depth_correction", "occluded_weight", "seg_radius", "snap_to_rays")
+    settings = {
+        "t_r": recipe["data"]["t_r"],
+        "pipeline": asdict(pipeline),
+        **{k: getattr(pcfg, k) for k in keep},
+    }
+    return {**settings, "self_train": pcfg.self_train} if round_ > 1 else settings
+
+
+def _kept_labels(path: Path, key: dict, make, write: bool) -> tuple[dict, bool]:
+    """A round's pseudo labels as an earlier invocation of this run saved them, when they were made
+    from the same data and (after the first round) the same nets, else made now and saved (by
+    `write`: rank 0), so that a resumed run does not spend minutes making them again. Returns the
+    labels and whether they were the saved ones."""
+    text = json.dumps(key, sort_keys=True)
+    if path.exists():
+        with np.load(path) as saved:
+            if str(saved["key"]) == text:
+                return {k: saved[k] for k in LABEL_KEYS}, True
+    labels = make()
+    if write:
+        # written whole, then renamed: another process never reads half a file
+        part = path.with_name(path.stem + ".part.npz")
+        np.savez(part, key=np.array(text), **{k: labels[k] for k in LABEL_KEYS})
+        part.replace(path)
+    return labels, False
 
 
 def _point_stages(recipe: dict) -> list[tuple[str, bool, int]]:

@@ -393,6 +393,59 @@ def test_self_training_trains_further_rounds_behind_the_first_and_exports_the_la
         fit(args(synthetic_sets, tmp_path / "x", stop_after="lidar1:3"))
 
 
+def self_trained(sets, first_out: Path, work: Path, weight: float, **over) -> FitArgs:
+    """A copy of a finished run's work directory (once), resumed with one round of self-training."""
+    if not work.exists():
+        shutil.copytree(first_out.with_name("bundle.work"), work)
+    saved = json.loads((work / "recipe.json").read_text())
+    saved["point"].update(self_train=weight, self_train_rounds=1)
+    (work / "recipe.json").write_text(json.dumps(saved))
+    a = args(sets, work.with_name(work.name + ".out"), work=work, resume=True, **over)
+    a.overrides = (*TINY, f"point.self_train={weight}", "point.self_train_rounds=1")
+    return a
+
+
+def kept(work: Path) -> list[tuple[int, bool]]:
+    return [(r["round"], r["kept"]) for r in records(work) if r.get("event") == "labels"]
+
+
+def test_a_resumed_run_keeps_the_labels_it_made_while_their_data_settings_and_nets_are_the_same(
+    synthetic_sets, uninterrupted, tmp_path
+):
+    first_out = uninterrupted[0]
+    whole = tmp_path / "whole.work"
+    fit(self_trained(synthetic_sets, first_out, whole, 0.5))
+    # stopped in round 2's LiDAR-only net, then resumed: both rounds' labels are read back, and
+    # the weights are the uninterrupted run's
+    work = tmp_path / "parts.work"
+    assert fit(self_trained(synthetic_sets, first_out, work, 0.5, stop_after="lidar2:3")) is None
+    assert (work / "labels1.npz").exists() and (work / "labels2.npz").exists()
+    fit(self_trained(synthetic_sets, first_out, work, 0.5))
+    assert kept(work)[-2:] == [(1, True), (2, True)]
+    assert equal(
+        {"x": torch.load(whole / "lidar2.pt", weights_only=False)["state_dict"]},
+        {"x": torch.load(work / "lidar2.pt", weights_only=False)["state_dict"]},
+    )
+
+    def again(weight: float) -> None:
+        for n in ("fusion2", "lidar2"):
+            (work / f"{n}.pt").unlink()
+        fit(self_trained(synthetic_sets, first_out, work, weight))
+
+    # another self-training weight: the first round's labels stand, the second's are made again
+    again(0.25)
+    assert kept(work)[-2:] == [(1, True), (2, False)]
+    # another first-round net behind the second round's labels: likewise
+    state = torch.load(work / "fusion.pt", weights_only=False)
+    name = next(iter(state["state_dict"]))
+    state["state_dict"][name] = state["state_dict"][name] + 0.01
+    torch.save(state, work / "fusion.pt")
+    again(0.25)
+    assert kept(work)[-2:] == [(1, True), (2, False)]
+    again(0.25)
+    assert kept(work)[-2:] == [(1, True), (2, True)]
+
+
 def test_run_times_measure_each_invocation_from_its_start_to_its_last_record(tmp_path):
     records = [
         {"time": 10.0, "event": "start"},
