@@ -13,7 +13,7 @@ import onnxruntime as ort
 import torch
 
 from .config import PipelineConfig
-from .evaluate import camera_only, evaluate, with_fallback
+from .evaluate import camera_only, evaluate, with_fallback, with_points
 from .fusion import sample_features, smooth_heatmaps
 from .shards import ShardSet
 
@@ -116,4 +116,8 @@ def held_out(
         if progress is not None:
             progress(i + 1, test.num_shards)
     data = {k: np.concatenate([d[k] for d in kept], axis=0) for k in EVAL_KEYS}
-    return {mode: evaluate(np.concatenate(v, axis=0), data, cfg) for mode, v in preds.items()}
+    pred = {mode: np.concatenate(v, axis=0) for mode, v in preds.items()}
+    reports = {mode: evaluate(p, data, cfg) for mode, p in pred.items()}
+    for mode in ("fusion", "lidar"):
+        reports[mode]["breakdown"]["with_points"] = with_points(pred[mode], data, cfg)
+    return reports

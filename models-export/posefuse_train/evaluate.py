@@ -48,6 +48,14 @@ def evaluate(pred_local: np.ndarray, data: dict, cfg: PipelineConfig) -> dict:
     return report
 
 
+def with_points(pred_local: np.ndarray, data: dict, cfg: PipelineConfig) -> dict:
+    """evaluate() over the persons with at least min_points in-box points only: the persons that
+    `posefuse eval --mode fusion|lidar` scores (it skips the others, which the held-out figures
+    answer by camera lifting, as the server's auto mode does)."""
+    keep = data["points_count"] >= cfg.min_points
+    return evaluate(pred_local[keep], {k: v[keep] for k, v in data.items()}, cfg)
+
+
 def left_right_swap_rate(pred, gt, visible, min_visible: int = 4) -> float | None:
     """Diagnostic (not a Waymo metric): the share of persons whose prediction is closer to the
     truth with left and right exchanged than to the truth itself, i.e. the body's facing was read

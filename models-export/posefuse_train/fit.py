@@ -455,9 +455,17 @@ def _export(
     eval_s = time.time() - t
     for mode, m in metrics.items():
         log({"event": "held_out", "mode": mode, **{k: v for k, v in m.items() if not isinstance(v, dict)}})
+        pts = m["breakdown"].get("with_points")
+        served = (
+            f" (persons with points, as `posefuse eval --mode {mode}` scores: "
+            f"{100 * (pts['oks_acc_3d'] or 0):.2f} %, {100 * (pts['mpjpe_3d_m'] or 0):.2f} cm)"
+            if pts
+            else ""
+        )
         log.say(
             f"held-out {mode:6s}: OKS/ACC@3D {100 * (m['oks_acc_3d'] or 0):.2f} %, "
             f"MPJPE {100 * (m['mpjpe_3d_m'] or 0):.2f} cm, OKS/ACC@2D {100 * (m['oks_acc_2d'] or 0):.2f} %"
+            + served
         )
     manifest = json.loads((staged / "manifest.json").read_text())
     parity = manifest["training"]["config"]["onnx_parity_max_abs_diff"]

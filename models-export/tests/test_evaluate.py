@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from posefuse_train.data import load
-from posefuse_train.evaluate import camera_only, left_right_swap_rate, with_fallback
+from posefuse_train.evaluate import camera_only, evaluate, left_right_swap_rate, with_fallback, with_points
 from posefuse_train.keypoints import FLIP, K
 
 
@@ -50,8 +50,6 @@ def test_left_right_swap_rate_counts_persons_read_the_wrong_way_round():
 
 
 def test_occluded_keypoints_count_in_the_headline_and_apart_in_the_breakdown(synthetic_sets):
-    from posefuse_train.evaluate import evaluate
-
     d, cfg, _ = load(synthetic_sets[1])
     vis3, occ3 = d["kp3d_visible"] > 0, d["kp3d_occluded"] > 0
     assert occ3.any() and not (vis3 & occ3).any()
@@ -65,3 +63,19 @@ def test_occluded_keypoints_count_in_the_headline_and_apart_in_the_breakdown(syn
     assert r["breakdown"]["visible"]["mpjpe_3d_m"] == pytest.approx(0.05, rel=1e-5)
     assert r["breakdown"]["occluded"]["mpjpe_3d_m"] == pytest.approx(0.3, rel=1e-5)
     assert r["pck_3d_20cm"] == pytest.approx(vis3.sum() / labelled.sum(), rel=1e-9)
+
+
+def test_with_points_scores_only_the_persons_the_point_networks_answer(synthetic_sets):
+    d, cfg, _ = load(synthetic_sets[1])
+    d = {k: v[:4].copy() for k, v in d.items()}
+    d["points_count"][:] = [cfg.min_points, cfg.min_points - 1, cfg.min_points + 5, 0]
+    # the point networks' persons 5 cm off, the camera-lifted ones 1 m off
+    few = d["points_count"] < cfg.min_points
+    pred = d["kp3d"].copy()
+    pred[..., 0] += np.where(few, 1.0, 0.05)[:, None]
+    labelled = (d["kp3d_visible"] > 0) | (d["kp3d_occluded"] > 0)
+    assert labelled[~few].any() and labelled[few].any()
+    assert evaluate(pred, d, cfg)["mpjpe_3d_m"] > 0.1
+    r = with_points(pred, d, cfg)
+    assert r["mpjpe_3d_m"] == pytest.approx(0.05, rel=1e-5)
+    assert r["count_3d"] == int(labelled[~few].any(axis=1).sum())

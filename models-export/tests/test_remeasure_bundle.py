@@ -30,6 +30,11 @@ def test_metrics_are_rewritten_under_the_convention_and_the_old_ones_kept(synthe
     want = held_out(bundle, ShardSet(synthetic_sets[1]), threads=1)
     assert after["metrics"]["convention"] == CONVENTION
     assert after["metrics"]["held_out"]["fusion"]["mpjpe_3d_m"] == want["fusion"]["mpjpe_3d_m"]
+    # the point networks' modes also say how they score without the camera-lifted persons
+    held = after["metrics"]["held_out"]
+    assert {"visible", "occluded", "with_points"} <= held["lidar"]["breakdown"].keys()
+    assert held["fusion"]["breakdown"]["with_points"] == want["fusion"]["breakdown"]["with_points"]
+    assert "with_points" not in held["camera"]["breakdown"]
     assert after["metrics"]["previous"] == {
         "convention": "visible keypoints only",
         "held_out": {"fusion": {"mpjpe_3d_m": 0.01}, "lidar": {}, "camera": {}},
