@@ -335,9 +335,16 @@ mod tests {
             half.add_3d(&pred, &gt, &vis, &b).unwrap();
             half.add_2d(&px, &gpx, &vis, &b2).unwrap();
         }
+        // a person with no labelled 3D keypoint, in the half that is merged in
+        let (pred, gt, _, b) = persons().remove(0);
+        let pred: Vec<[f64; 3]> = pred.iter().zip(&gt).map(|(p, g)| p.unwrap_or(*g)).collect();
+        for acc in [&mut whole, &mut right] {
+            acc.add_3d(&pred, &gt, &[false; K], &b).unwrap();
+        }
         left.merge(&right);
         let (a, b) = (left.report(), whole.report());
-        assert_eq!((a.count_3d, a.count_2d, a.skipped_2d), (8, 8, 1));
+        assert_eq!((a.count_3d, a.skipped_3d, a.count_2d, a.skipped_2d), (8, 2, 8, 1));
+        assert_eq!((b.skipped_3d, b.skipped_2d), (2, 1));
         let json = |r: &MetricsReport| serde_json::to_value(r).unwrap();
         // sums in a different order may differ in the last bit
         let (ja, jb) = (json(&a), json(&b));

@@ -257,6 +257,11 @@ mod tests {
         let nan = CropTransform { x0: f64::NAN, ..off };
         assert_eq!(plan_decode(&[off, nan], 1920, 1280), DecodePlan { denominator: 1, region: None });
         assert!(plan_passes(&[off, nan], 1920, 1280).is_empty());
+        // a window of no size (an infinite scale) inside the image cuts nothing either
+        let empty = CropTransform { x0: 500.0, y0: 300.0, scale: f64::INFINITY, size: 64 };
+        assert_eq!(empty.side(), 0.0);
+        assert_eq!(plan_decode(&[empty], 1920, 1280), DecodePlan { denominator: 1, region: None });
+        assert!(plan_passes(&[empty], 1920, 1280).is_empty());
         let big = window(900.0, 600.0, 600.0, 64);
         assert_eq!(plan_decode(&[off, big], 1920, 1280).denominator, 8);
         assert_eq!(plan_decode(&[], 1920, 1280).region, None);
