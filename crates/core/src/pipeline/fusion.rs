@@ -315,6 +315,8 @@ mod tests {
             fused_points(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]], &f, k),
             vec![1., 2., 3., 6., 22., 4., 5., 6., 0., 0.]
         );
+        // without the camera: the coordinates alone, in the same order
+        assert_eq!(lidar_points(&[[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]), vec![1., 2., 3., 4., 5., 6.]);
     }
 
     #[test]

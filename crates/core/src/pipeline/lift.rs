@@ -110,12 +110,19 @@ mod tests {
     #[test]
     fn decoding_finds_the_peak_with_a_quarter_shift() {
         let (h, w) = (4, 4);
-        let mut hm = vec![0.0; 2 * h * w];
+        let mut hm = vec![0.0; 3 * h * w];
         hm[w + 2] = 0.9; // channel 0 peak at (1, 2), right neighbour larger than left
         hm[w + 3] = 0.5;
         hm[h * w + 3 * w] = 0.7; // channel 1 peak at (3, 0), corner: no shift
-        let d = decode_heatmaps(&hm, 2, h, w, 16);
+
+        // channel 2 peak at (2, 1), its left and upper neighbours larger than their opposites
+        let c2 = |i: usize, j: usize| 2 * h * w + i * w + j;
+        for (i, j, v) in [(2, 1, 0.8), (2, 0, 0.6), (2, 2, 0.1), (1, 1, 0.3), (3, 1, 0.2)] {
+            hm[c2(i, j)] = v;
+        }
+        let d = decode_heatmaps(&hm, 3, h, w, 16);
         assert_eq!(d[0], ([(2.0 + 0.25) * 4.0, 4.0], 0.9));
         assert_eq!(d[1], ([0.0, 12.0], 0.7));
+        assert_eq!(d[2], ([(1.0 - 0.25) * 4.0, (2.0 - 0.25) * 4.0], 0.8));
     }
 }
