@@ -8,10 +8,9 @@ the versions, the metrics and the time.
 A run keeps its state in a work directory (default: OUT.work): the resolved recipe, log.jsonl
 (losses every 50 steps, the held-out metrics at the end), each round's pseudo labels
 (labelsN.npz), each stage's resumable checkpoint and, once a stage is done, its network
-(camera.pt, fusion.pt, lidar.pt). `--resume` continues an
-interrupted run from there to the same weights as an uninterrupted one (same device and number
-of processes). Under `torchrun --nproc-per-node N` the stages run data-parallel (DDP); rank 0
-writes everything.
+(camera.pt, fusion.pt, lidar.pt). `--resume` continues an interrupted run from there to the same
+weights as an uninterrupted one (same device and number of processes). Under `torchrun
+--nproc-per-node N` the stages run data-parallel (DDP); rank 0 writes everything.
 """
 
 from __future__ import annotations
@@ -43,17 +42,17 @@ from .metrics import CONVENTION
 from .point_net import Blend
 from .shards import ShardSet
 from .train import (
+    LABEL_KEYS,
     RunOptions,
     Stopped,
     checkpoint,
+    label_settings,
     next_round_labels,
     stream_labels,
     train_camera,
     train_point,
 )
 
-# what a round's pseudo labels hold (train.stream_labels, train.next_round_labels)
-LABEL_KEYS = ("kp3d", "weight", "visible")
 # and fusionN, lidarN: round N of a self-trained recipe (point.self_train, point.self_train_rounds)
 STAGES = ("camera", "fusion", "lidar")
 
@@ -288,7 +287,7 @@ def fit(a: FitArgs) -> dict | None:
                 key = {
                     "round": round_,
                     "train": train.describe(),
-                    "settings": _label_settings(recipe, pipeline, pcfg, round_),
+                    "settings": label_settings(recipe["data"]["t_r"], pipeline, pcfg, round_),
                     "nets": {n: sha256(done(n)) for n in made_from},
                 }
                 t = time.time()
@@ -362,19 +361,6 @@ def fit(a: FitArgs) -> dict | None:
     log({"event": "done", "time_s": timings})
     d.barrier()
     return json.loads(text)
-
-
-def _label_settings(recipe: dict, pipeline, pcfg, round_: int) -> dict:
-    """What a round's labels are made with besides the data and the nets (train.stream_labels,
-    labels.relabelled); not the rest of the recipe, so that adding a round to a finished run keeps
-    the labels it made."""
-    keep = ("depth_correction", "occluded_weight", "seg_radius", "snap_to_rays")
-    settings = {
-        "t_r": recipe["data"]["t_r"],
-        "pipeline": asdict(pipeline),
-        **{k: getattr(pcfg, k) for k in keep},
-    }
-    return {**settings, "self_train": pcfg.self_train} if round_ > 1 else settings
 
 
 def _kept_labels(path: Path, key: dict, make, write: bool) -> tuple[dict, bool]:

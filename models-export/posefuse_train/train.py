@@ -132,6 +132,18 @@ class _MemoryShards:
 
 # What labels on the 2D labels' rays read besides: the camera and crop that make a pixel a ray.
 RAY_LABEL_KEYS = ("kp2d_occluded", "crop", "intrinsic", "extrinsic", "frame_yaw")
+# what a round's pseudo labels hold (stream_labels, next_round_labels)
+LABEL_KEYS = ("kp3d", "weight", "visible")
+
+
+def label_settings(t_r: float, pipeline: PipelineConfig, point: TrainPointConfig, round_: int) -> dict:
+    """What round `round_`'s labels depend on besides the data and (after the first round) the
+    nets: the settings stream_labels() and next_round_labels() read, and nothing else of the
+    recipe, so that a run given more rounds can keep the labels it made."""
+    keep = ("depth_correction", "occluded_weight", "seg_radius", "snap_to_rays") + (
+        ("self_train",) if round_ > 1 else ()
+    )
+    return {"t_r": t_r, "pipeline": dataclasses.asdict(pipeline), **{k: getattr(point, k) for k in keep}}
 
 
 def stream_labels(data, cfg: PipelineConfig, t_r: float, point: TrainPointConfig) -> dict:
@@ -151,7 +163,7 @@ def stream_labels(data, cfg: PipelineConfig, t_r: float, point: TrainPointConfig
         pseudo_labels(source.shards.read(i, keys), cfg, t_r, point.depth_correction, 128, **rays)
         for i in range(source.shards.num_shards)
     ]
-    return {k: np.concatenate([p[k] for p in parts], axis=0) for k in ("kp3d", "weight", "visible")}
+    return {k: np.concatenate([p[k] for p in parts], axis=0) for k in LABEL_KEYS}
 
 
 @torch.no_grad()
@@ -178,7 +190,7 @@ def next_round_labels(
             predict_points(fusion, xyz, uv, sm, pipeline) + predict_points(lidar, xyz, uv, None, pipeline)
         ) / 2
         parts.append(relabelled({k: v[mine] for k, v in first.items()}, arrays, pred, cfg.self_train))
-    return {k: np.concatenate([p[k] for p in parts], axis=0) for k in ("kp3d", "weight", "visible")}
+    return {k: np.concatenate([p[k] for p in parts], axis=0) for k in LABEL_KEYS}
 
 
 # --- the loop ----------------------------------------------------------------------------------
