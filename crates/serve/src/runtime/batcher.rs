@@ -144,6 +144,7 @@ impl Runtime {
             name = %m.name,
             version = %m.version,
             precision = %bundle.precision,
+            device = %cfg.device,
             "bundle loaded"
         );
         Ok(Arc::new(Runtime::start(bundle, cfg)?))
