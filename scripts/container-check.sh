@@ -7,26 +7,9 @@
 # `--build-context`s that stand in for the base images where no registry serves them).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-C=${CONTAINER:-docker}
 IMAGE=${1:-posefuse:check}
 PORT=${PORT:-18080}
-work=$(mktemp -d)
-names=()
-cleanup() {
-  for n in "${names[@]}"; do "$C" rm -f "$n" >/dev/null 2>&1 || true; done
-  rm -rf "$work"
-}
-trap cleanup EXIT
-fail() { echo "FAIL: $*" >&2; exit 1; }
-step() { echo "== $*"; }
-# Waits up to 120 s for /readyz on PORT; fails with container NAME's last log lines.
-wait_ready() {
-  for _ in $(seq 120); do
-    curl -fsS "http://127.0.0.1:$1/readyz" >/dev/null 2>&1 && return 0
-    sleep 1
-  done
-  fail "not ready after 120 s: $("$C" logs "$2" 2>&1 | tail -n 5)"
-}
+. scripts/container-lib.sh
 
 step "build $IMAGE"
 start=$(date +%s)
@@ -37,11 +20,7 @@ read -r -a flags <<<"${CONTAINER_BUILD_FLAGS:-}"
 echo "built in $(($(date +%s) - start)) s; size: $("$C" image inspect --format '{{.Size}}' "$IMAGE") bytes"
 
 step "simulate request frames with the image's own binary"
-chmod 0777 "$work"
-"$C" run --rm -v "$work:/out" "$IMAGE" simulate --count 4 --seed 7 --image-size 64 --requests 4 \
-  --profile street --out /out/sim >/dev/null
-frame=$(ls "$work"/sim/requests/*.json | head -n 1)
-[ -f "$frame" ] || fail "the simulator wrote no request fixture"
+simulate_frame "$IMAGE"
 
 step "serve the baked-in bundle"
 name=posefuse-check-$$

@@ -15,29 +15,11 @@
 #   spaces (e.g. --build-arg DEBIAN_IMAGE=... where no registry serves debian:bookworm-slim).
 set -euo pipefail
 cd "$(dirname "$0")/.."
-C=${CONTAINER:-docker}
 CPU_IMAGE=${1:-posefuse:check}
 IMAGE=${2:-posefuse:cuda-check}
 PORT=${PORT:-18090}
 read -r -a gpu_flags <<<"${GPU_FLAGS:-}"
-work=$(mktemp -d)
-names=()
-cleanup() {
-  for n in "${names[@]}"; do "$C" rm -f "$n" >/dev/null 2>&1 || true; done
-  rm -rf "$work"
-}
-trap cleanup EXIT
-fail() { echo "FAIL: $*" >&2; exit 1; }
-step() { echo "== $*"; }
-wait_ready() {
-  for _ in $(seq 120); do
-    curl -fsS "http://127.0.0.1:$1/readyz" >/dev/null 2>&1 && return 0
-    "$C" inspect --format '{{.State.Running}}' "$2" 2>/dev/null | grep -q true \
-      || fail "$2 stopped: $("$C" logs "$2" 2>&1 | tail -n 5)"
-    sleep 1
-  done
-  fail "not ready after 120 s: $("$C" logs "$2" 2>&1 | tail -n 5)"
-}
+. scripts/container-lib.sh
 # Serves IMAGE with the extra run flags, answers the frame into FILE, stops the container.
 answer() {
   local file=$1 port=$2 name=posefuse-cuda-check-$2-$$
@@ -82,11 +64,7 @@ step "ONNX Runtime's GPU build in the image"
   || fail "no CUDA provider or CUDA libraries in /app/.ort/lib"
 
 step "simulate a request frame"
-chmod 0777 "$work"
-"$C" run --rm -v "$work:/out" "$CPU_IMAGE" simulate --count 4 --seed 7 --image-size 64 --requests 4 \
-  --profile street --out /out/sim >/dev/null
-frame=$(ls "$work"/sim/requests/*.json | head -n 1)
-[ -f "$frame" ] || fail "the simulator wrote no request fixture"
+simulate_frame "$CPU_IMAGE"
 
 step "the CUDA image on the CPU answers as the CPU image"
 answer "$work/cpu.json" "$PORT" "$CPU_IMAGE"
