@@ -3,8 +3,8 @@
 # net (ResNet-50 at 256 px, exported with random weights, which cost what trained ones do) on ONNX
 # Runtime's CUDA provider (float32, as the server picks on a GPU), through `posefuse bench --device
 # cuda` at each --max-batch of BATCHES; then the default bundle on the same machine's CPU (INT8
-# camera, as its manifest says) for comparison. Each run's table goes
-# to OUT/bench-*.txt, all of them as JSON to OUT/summary.json (BENCHMARKS.md, "Serving on a GPU").
+# camera, as its manifest says) for comparison. Each run's table goes to OUT/bench-*.txt, all of
+# them as JSON to OUT/summary.json (BENCHMARKS.md, "Serving on a GPU").
 # Sized to run in under 10 minutes on one H100-class GPU. Nothing in the test suite depends on it.
 #
 #   bash scripts/gpu_serve_check.sh [OUT]
