@@ -348,11 +348,32 @@ mod tests {
         let json = |r: &MetricsReport| serde_json::to_value(r).unwrap();
         // sums in a different order may differ in the last bit
         let (ja, jb) = (json(&a), json(&b));
-        for key in ["oks_acc_3d", "mpjpe_3d_m", "pck_3d_10cm", "pem_3d_m", "oks_acc_2d", "mpjpe_2d_px"] {
+        for key in [
+            "oks_acc_3d",
+            "mean_oks_3d",
+            "mpjpe_3d_m",
+            "pck_3d_10cm",
+            "pck_3d_20cm",
+            "pem_3d_m",
+            "oks_acc_2d",
+            "mean_oks_2d",
+            "mpjpe_2d_px",
+        ] {
             let (x, y) = (ja[key].as_f64().unwrap(), jb[key].as_f64().unwrap());
             assert!((x - y).abs() < 1e-12, "{key}: {x} vs {y}");
         }
         assert_eq!(a.per_keypoint_oks_3d.len(), K);
+        for (merged, whole) in
+            [(&a.per_keypoint_oks_3d, &b.per_keypoint_oks_3d), (&a.per_keypoint_oks_2d, &b.per_keypoint_oks_2d)]
+        {
+            for (m, w) in merged.iter().zip(whole) {
+                assert_eq!(m.name, w.name);
+                assert_eq!(m.oks.is_some(), w.oks.is_some(), "{}", m.name);
+                if let (Some(x), Some(y)) = (m.oks, w.oks) {
+                    assert!((x - y).abs() < 1e-12, "{}: {x} vs {y}", m.name);
+                }
+            }
+        }
     }
 
     #[test]
