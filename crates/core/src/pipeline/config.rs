@@ -178,6 +178,7 @@ mod tests {
         let ok = PipelineConfig::default();
         assert_eq!(ok.validate(), Ok(()));
         let bad = [
+            PipelineConfig { image_size: 4, heatmap_size: 1, ..ok.clone() },
             PipelineConfig { heatmap_size: 0, ..ok.clone() },
             PipelineConfig { heatmap_size: 48, ..ok.clone() },
             PipelineConfig { smoothing_kernel: 6, ..ok.clone() },
@@ -185,6 +186,7 @@ mod tests {
             PipelineConfig { smoothing_sigma: 0.0, ..ok.clone() },
             PipelineConfig { std: [0.2, 0.0, 0.2], ..ok.clone() },
             PipelineConfig { crop_scale: 0.9, ..ok.clone() },
+            PipelineConfig { crop_scale: f64::NAN, ..ok.clone() },
             PipelineConfig { lift_temperature: 0.0, ..ok.clone() },
             PipelineConfig { lift_temperature: f64::NAN, ..ok.clone() },
             PipelineConfig { rotate_by_heading: true, ..ok.clone().in_frame(PointFrame::View) },
