@@ -244,9 +244,9 @@ mod tests {
     #[test]
     fn the_view_frame_looks_from_the_sensor_and_ignores_the_heading() {
         let cfg =
-            PipelineConfig { view_origin: [1.0, 0.0, 2.0], ..PipelineConfig::default() }.in_frame(PointFrame::View);
-        // box centre (10, 2): the ray from (1, 0) runs along (9, 2)
-        let ray = 2f64.atan2(9.0);
+            PipelineConfig { view_origin: [1.0, -1.0, 2.0], ..PipelineConfig::default() }.in_frame(PointFrame::View);
+        // box centre (10, 2): the ray from (1, −1) runs along (9, 3)
+        let ray = 3f64.atan2(9.0);
         for heading in [0.0, 1.0, -2.5, std::f64::consts::PI] {
             let b = BoxFrame::new(&Box3d { heading, ..person_box_3d() });
             assert!((model_frame(&b, &cfg).heading - ray).abs() < 1e-12);
@@ -260,8 +260,8 @@ mod tests {
         }
         // the sensor itself is on the −x side of every person
         let b = BoxFrame::new(&person_box_3d());
-        assert!(to_local(&b, [1.0, 0.0, 2.0], &cfg)[0] < -9.0);
-        let over = BoxFrame::new(&Box3d { center_x: 1.0, center_y: 0.0, ..person_box_3d() });
+        assert!(to_local(&b, [1.0, -1.0, 2.0], &cfg)[0] < -9.0);
+        let over = BoxFrame::new(&Box3d { center_x: 1.0, center_y: -1.0, ..person_box_3d() });
         assert_eq!(model_frame(&over, &cfg).heading, 0.0);
     }
 
