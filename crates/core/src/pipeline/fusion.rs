@@ -337,6 +337,38 @@ mod tests {
     }
 
     #[test]
+    fn smoothing_only_the_sampled_cells_equals_smoothing_everything_in_any_band_of_cells() {
+        use rand::{Rng, SeedableRng};
+        let mut rng = rand_chacha::ChaCha8Rng::seed_from_u64(4);
+        let (k, h, w) = (13, 16, 16);
+        let hm: Vec<f32> = (0..k * h * w).map(|_| rng.random::<f32>()).collect();
+        // the window the points need is cut to their rows and columns, plus the kernel's reach
+        // where the grid has it: points in the first row or two, in the last, in one column, alone
+        let bands: [(std::ops::Range<f32>, std::ops::Range<f32>); 5] = [
+            (0.0..64.0, 0.0..4.0),
+            (0.0..64.0, 0.0..8.0),
+            (0.0..64.0, 60.0..64.0),
+            (28.0..32.0, 0.0..64.0),
+            (63.0..63.5, 63.0..63.5),
+        ];
+        for kernel in [3, 5, 7] {
+            let cfg = PipelineConfig {
+                image_size: 64,
+                smoothing_kernel: kernel,
+                smoothing_sigma: 3.0,
+                ..PipelineConfig::default()
+            };
+            for (xs, ys) in bands.clone() {
+                let uv: Vec<[f32; 2]> =
+                    (0..40).map(|_| [rng.random_range(xs.clone()), rng.random_range(ys.clone())]).collect();
+                let lazy = smoothed_features(&hm, k, h, w, &uv, &cfg);
+                let all = sample_features(&smooth_heatmaps(&hm, k, h, w, &cfg), k, h, w, &uv, 64);
+                assert_eq!(lazy, all, "kernel {kernel}, x in {xs:?}, y in {ys:?}");
+            }
+        }
+    }
+
+    #[test]
     fn bilinear_sampling_blends_the_four_cells_around_a_point() {
         // S = 16, W' = 4: cell j's centre is at x = 4j
         assert_eq!(bilinear_cell(6.0, 4, 16), (1, 0.5));
