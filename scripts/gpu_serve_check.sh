@@ -3,8 +3,9 @@
 # net (ResNet-50 at 256 px, exported with random weights, which cost what trained ones do) on ONNX
 # Runtime's CUDA provider (float32, as the server picks on a GPU), through `posefuse bench --device
 # cuda` at each --max-batch of BATCHES; then the default bundle on the same machine's CPU (INT8
-# camera, as its manifest says) for comparison. Each run's table goes to OUT/bench-*.txt, all of
-# them as JSON to OUT/summary.json (BENCHMARKS.md, "Serving on a GPU").
+# camera, as its manifest says) for comparison. Each run's table goes to OUT/bench-*.txt and its
+# numbers (`posefuse bench --json`) to OUT/bench-*.json, all of them to OUT/summary.json
+# (BENCHMARKS.md, "Serving on a GPU").
 # Sized to run in under 10 minutes on one H100-class GPU. Nothing in the test suite depends on it.
 #
 #   bash scripts/gpu_serve_check.sh [OUT]
@@ -32,7 +33,7 @@ CPU_BASELINE=${CPU_BASELINE:-1}
 [ -x "$BIN" ] || { echo "no $BIN: cargo build --release" >&2; exit 2; }
 [ -f "$ORT_LIB" ] || { echo "no ONNX Runtime at $ORT_LIB: bash scripts/setup.sh --gpu" >&2; exit 2; }
 mkdir -p "$OUT"
-rm -f "$OUT"/bench-*.txt "$OUT/summary.json"
+rm -f "$OUT"/bench-*.txt "$OUT"/bench-*.json "$OUT/summary.json"
 
 if [ "$DEVICE" != cpu ]; then
   cuda_dir=$(dirname "$ORT_LIB")/cuda
@@ -59,7 +60,8 @@ if [ ! -f "$OUT/bundle_r50/manifest.json" ]; then
 fi
 echo "fixtures and the ResNet-50 bundle: $(($(date +%s) - step_start)) s"
 
-# bench NAME DEVICE BUNDLE MAX_BATCH: one `posefuse bench`, its table into OUT/bench-NAME.txt.
+# bench NAME DEVICE BUNDLE MAX_BATCH: one `posefuse bench`, its table into OUT/bench-NAME.txt and
+# its numbers into OUT/bench-NAME.json.
 bench() {
   local name=$1 device=$2 bundle=$3 batch=$4 t
   local workers=()
@@ -68,7 +70,7 @@ bench() {
   echo "== $name: --device $device --max-batch $batch --model-dir $bundle"
   "$BIN" bench --data "$OUT/requests" --frames "$FRAMES" --concurrency "$CLIENTS" --duration "$DURATION" \
     --image "$IMAGE" --device "$device" --max-batch "$batch" "${workers[@]}" \
-    --model-dir "$bundle" --ort-lib "$ORT_LIB" 2>"$OUT/bench-$name.log" | tee "$OUT/bench-$name.txt" \
+    --model-dir "$bundle" --ort-lib "$ORT_LIB" --json "$OUT/bench-$name.json" 2>"$OUT/bench-$name.log" | tee "$OUT/bench-$name.txt" \
     || { tail -n 5 "$OUT/bench-$name.log" >&2; exit 1; }
   echo "($(($(date +%s) - t)) s)"
 }
@@ -80,5 +82,7 @@ done
 if [ "$CPU_BASELINE" = 1 ] && [ "$DEVICE" != cpu ]; then
   bench "default-cpu-b16" cpu models/default 16
 fi
-python3 scripts/bench_summary.py "$OUT"/bench-*.txt >"$OUT/summary.json"
+python3 -c 'import json, pathlib, sys
+runs = {pathlib.Path(p).stem.removeprefix("bench-"): json.loads(pathlib.Path(p).read_text()) for p in sys.argv[1:]}
+print(json.dumps(runs, indent=2))' "$OUT"/bench-*.json >"$OUT/summary.json"
 echo "summary: $OUT/summary.json ($(($(date +%s) - step_start)) s in all)"

@@ -36,6 +36,7 @@ fn the_bench_loads_a_server_with_every_image_form() {
             frames: 2,
             timeout: 30.0,
             no_raw: false,
+            json: Some(data.path().join(format!("bench-{protocol:?}.json"))),
         };
         let args =
             BenchOptions { load, model_dir: model_dir(), runtime: RuntimeConfig::DEFAULT, serve_args: Vec::new() };
@@ -67,6 +68,43 @@ fn the_bench_loads_a_server_with_every_image_form() {
             assert!(s.persons >= lo * s.answered && s.persons <= hi * s.answered, "{what}: {} persons", s.persons);
             assert!(s.frames_per_s > 0.0 && s.p50 > Duration::ZERO && s.p50 <= s.p99, "{what}: {s:?}");
         }
+        // The JSON holds what the table shows, the same numbers as the report returned.
+        let json: serde_json::Value =
+            serde_json::from_slice(&std::fs::read(args.load.json.as_ref().unwrap()).unwrap()).unwrap();
+        let ms = |d: Duration| d.as_secs_f64() * 1e3;
+        // serde_json reads floats back to within an ulp or so, not always bit for bit.
+        let same = |j: &serde_json::Value, v: f64| j.as_f64().is_some_and(|j| (j - v).abs() <= 1e-12 * v.abs());
+        assert_eq!(json["setup"]["frames"], 2);
+        assert_eq!(json["setup"]["persons"], persons);
+        assert_eq!(json["setup"]["device"], "cpu");
+        assert_eq!(json["setup"]["protocol"], format!("{protocol:?}").to_lowercase());
+        assert_eq!(json["setup"]["max_batch"], RuntimeConfig::DEFAULT.max_batch);
+        assert!(same(&json["raw_frame_p50_ms"], ms(report.raw_frame_p50.unwrap())), "{json}");
+        assert!(same(&json["raw_persons_per_s"], report.raw_persons_per_s.unwrap()), "{json}");
+        assert_eq!(json["raw_frames_timed"], report.raw_frames_timed);
+        assert!(json["server_peak_rss_mb"].as_f64().is_some_and(|mb| mb > 1.0), "{json}");
+        let steps = json["steps"].as_array().unwrap();
+        assert_eq!(steps.len(), report.steps.len());
+        for (j, s) in steps.iter().zip(&report.steps) {
+            let image = serde_json::to_value(s.form).unwrap();
+            assert_eq!(j["image"], image);
+            assert_eq!(
+                (j["clients"].as_u64(), j["clients_answered"].as_u64()),
+                (Some(s.clients as u64), Some(s.clients_answered as u64))
+            );
+            assert_eq!(
+                (j["answered"].as_u64(), j["persons"].as_u64()),
+                (Some(s.answered as u64), Some(s.persons as u64))
+            );
+            assert!(same(&j["p50_ms"], ms(s.p50)) && same(&j["p99_ms"], ms(s.p99)), "{j}");
+            assert!(same(&j["frames_per_s"], s.frames_per_s) && same(&j["persons_per_s"], s.persons_per_s), "{j}");
+            let per_frame = s.persons_per_s / s.frames_per_s;
+            assert!((per_frame - s.persons as f64 / s.answered as f64).abs() < 1e-9, "{j}");
+            assert_eq!(j["statuses"]["200"].as_u64(), Some(s.answered as u64));
+            assert!(j["peak_rss_mb"].as_f64().is_some_and(|mb| mb > 1.0), "{j}");
+        }
+        let names: Vec<&str> = steps.iter().map(|s| s["image"].as_str().unwrap()).collect();
+        assert!(names.contains(&"as-is") && names.contains(&"jpeg420"), "{names:?}");
         if protocol == Protocol::Grpc {
             let mut shm_grpc = args;
             shm_grpc.load.image = vec![ImageForm::RgbShm];
@@ -114,6 +152,7 @@ fn with_the_waiting_line_every_closed_loop_client_of_a_full_server_is_answered()
         frames: 1,
         timeout: 30.0,
         no_raw: true,
+        json: Some(data.path().join("bench.json")),
     };
     let report = run_bench(BenchOptions {
         load,
@@ -122,6 +161,11 @@ fn with_the_waiting_line_every_closed_loop_client_of_a_full_server_is_answered()
         serve_args: Vec::new(),
     })
     .unwrap();
+    // Without the raw reference, the JSON says so rather than leaving it out.
+    let json: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(data.path().join("bench.json")).unwrap()).unwrap();
+    assert!(json["raw_frame_p50_ms"].is_null() && json["raw_persons_per_s"].is_null(), "{json}");
+    assert_eq!(json["steps"][0]["clients_answered"], 6);
     let s = &report.steps[0];
     assert_eq!(s.statuses.keys().collect::<Vec<_>>(), ["200"], "{:?}", s.statuses);
     assert_eq!(s.clients_answered, 6, "{s:?}");

@@ -29,7 +29,8 @@ use posefuse_serve::service::api::Mode;
 use posefuse_serve::service::planned_inputs;
 
 /// How the bench sends each frame's camera image.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "kebab-case")]
 #[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum ImageForm {
     /// The fixture's JPEG as written by the simulator.
@@ -46,7 +47,8 @@ pub enum ImageForm {
 }
 
 /// Transport of the requests.
-#[derive(Debug, Clone, Copy, PartialEq, Eq)]
+#[derive(Debug, Clone, Copy, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "lowercase")]
 #[cfg_attr(feature = "cli", derive(clap::ValueEnum))]
 pub enum Protocol {
     /// `POST /v1/poses` with a JSON body.
@@ -97,6 +99,10 @@ pub struct LoadOptions {
     /// Skip the raw ONNX Runtime ceiling.
     #[cfg_attr(feature = "cli", arg(long, env = "POSEFUSE_BENCH_NO_RAW"))]
     pub no_raw: bool,
+    /// Also write what was measured to this file as JSON (the fixtures, the runtime, the raw
+    /// reference and every step), for scripts that keep the numbers of several runs.
+    #[cfg_attr(feature = "cli", arg(long, env = "POSEFUSE_BENCH_JSON"))]
+    pub json: Option<PathBuf>,
 }
 
 /// What `posefuse bench` runs: the load, and the bundle and settings of the server it starts.
@@ -566,35 +572,77 @@ async fn wait_ready(url: &str) -> posefuse_data::error::Result<()> {
     bail!("{url} did not become ready within 120 s")
 }
 
-/// What one step of the bench measured (one image form at one concurrency).
-#[derive(Debug, Clone)]
+/// What one step of the bench measured (one image form at one concurrency). Times are written
+/// to JSON in milliseconds (`p50_ms`, `p99_ms`).
+#[derive(Debug, Clone, serde::Serialize)]
 pub struct StepReport {
+    #[serde(rename = "image")]
     pub form: ImageForm,
     pub clients: usize,
+    /// Clients that had at least one request answered: fewer than `clients` means some were
+    /// refused every time they asked (each waits its `Retry-After`, while the others' next
+    /// requests take the places their answers free).
+    pub clients_answered: usize,
     /// Requests answered with 200.
     pub answered: usize,
     /// Persons in the answered requests.
     pub persons: usize,
     pub frames_per_s: f64,
+    pub persons_per_s: f64,
+    #[serde(rename = "p50_ms", serialize_with = "as_ms")]
     pub p50: Duration,
+    #[serde(rename = "p99_ms", serialize_with = "as_ms")]
     pub p99: Duration,
     /// Every status seen, with its count (`"200"`, `"429"`, transport errors by name).
     pub statuses: std::collections::BTreeMap<String, usize>,
-    /// Clients that had at least one request answered: fewer than `clients` means some were
-    /// refused every time they asked (each waits its `Retry-After`, while the others' next
-    /// requests take the places their answers free).
-    pub clients_answered: usize,
+    /// The server's peak resident memory during the step (None: no process to read it from).
+    pub peak_rss_mb: Option<f64>,
+}
+
+/// The settings a bench ran with.
+#[derive(Debug, Clone, serde::Serialize)]
+pub struct BenchSetup {
+    pub bundle: PathBuf,
+    /// The frames sent (cycled through) and their persons.
+    pub frames: usize,
+    pub persons: usize,
+    pub device: String,
+    pub workers: usize,
+    pub intra_threads: usize,
+    pub max_batch: usize,
+    pub protocol: Protocol,
+    pub step_s: f64,
 }
 
 /// What `posefuse bench` measured: the raw ONNX Runtime reference (unless `no_raw`) and each step.
-#[derive(Debug, Clone)]
+#[derive(Debug, Clone, serde::Serialize)]
 pub struct BenchReport {
+    pub setup: BenchSetup,
+    #[serde(rename = "raw_frame_p50_ms", serialize_with = "as_ms_opt")]
     pub raw_frame_p50: Option<Duration>,
     /// Frames the raw p50 is taken over, and their inference time.
     pub raw_frames_timed: usize,
+    #[serde(rename = "raw_timed_ms", serialize_with = "as_ms")]
     pub raw_timed: Duration,
     pub raw_persons_per_s: Option<f64>,
     pub steps: Vec<StepReport>,
+    /// The server's lifetime peak resident memory (VmHWM) at the end.
+    pub server_peak_rss_mb: Option<f64>,
+}
+
+fn as_ms<S: serde::Serializer>(d: &Duration, s: S) -> Result<S::Ok, S::Error> {
+    s.serialize_f64(ms(*d))
+}
+
+fn as_ms_opt<S: serde::Serializer>(d: &Option<Duration>, s: S) -> Result<S::Ok, S::Error> {
+    match d {
+        Some(d) => s.serialize_some(&ms(*d)),
+        None => s.serialize_none(),
+    }
+}
+
+fn mb(kb: u64) -> f64 {
+    kb as f64 / 1024.0
 }
 
 /// Runs `posefuse bench`: prints its table and returns what it measured.
@@ -640,6 +688,18 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
     rt.block_on(wait_ready(&url))?;
     println!();
     let mut report = BenchReport {
+        setup: BenchSetup {
+            bundle: args.model_dir.clone(),
+            frames: frames.len(),
+            persons,
+            device: r.device.to_string(),
+            workers: r.workers,
+            intra_threads: r.intra_threads,
+            max_batch: r.max_batch,
+            protocol: args.load.protocol,
+            step_s: args.load.duration,
+        },
+        server_peak_rss_mb: None,
         raw_frame_p50: raw.as_ref().map(|r| r.frame_p50),
         raw_frames_timed: raw.as_ref().map_or(0, |r| r.frames_timed),
         raw_timed: raw.as_ref().map_or(Duration::ZERO, |r| r.timed),
@@ -691,7 +751,7 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
                 ratio(raw.as_ref().map(|r| ms(p50) / ms(r.frame_p50))),
                 ratio(raw.as_ref().map(|r| s.persons as f64 / secs / r.persons_per_s)),
                 statuses.join(", "),
-                s.peak_rss_kb.map_or("–".to_string(), |kb| format!("{:.0}", kb as f64 / 1024.0)),
+                s.peak_rss_kb.map_or("–".to_string(), |kb| format!("{:.0}", mb(kb))),
             );
             report.steps.push(StepReport {
                 form,
@@ -699,20 +759,27 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
                 answered: s.latencies.len(),
                 persons: s.persons,
                 frames_per_s: s.latencies.len() as f64 / secs,
+                persons_per_s: s.persons as f64 / secs,
                 p50,
                 p99,
                 statuses: s.statuses.clone(),
                 clients_answered: s.clients_answered,
+                peak_rss_mb: s.peak_rss_kb.map(mb),
             });
         }
         if form == ImageForm::RgbShm {
             rt.block_on(shared_memory::unregister(&url, &objects))?;
         }
     }
-    if let Some(hwm) = pid.and_then(|p| proc_kb(p, "VmHWM:")) {
-        println!("\nserver VmHWM (lifetime peak RSS): {:.0} MB", hwm as f64 / 1024.0);
+    report.server_peak_rss_mb = pid.and_then(|p| proc_kb(p, "VmHWM:")).map(mb);
+    if let Some(hwm) = report.server_peak_rss_mb {
+        println!("\nserver VmHWM (lifetime peak RSS): {hwm:.0} MB");
     }
     drop(spawned);
+    if let Some(path) = &args.load.json {
+        let text = serde_json::to_string_pretty(&report).context("the bench report as JSON")?;
+        std::fs::write(path, text + "\n").with_context(|| format!("writing {}", path.display()))?;
+    }
     Ok(report)
 }
 
