@@ -94,18 +94,19 @@ def predictions(sess: dict, d: dict, cfg: PipelineConfig, batch: int = 256) -> d
     }
 
 
-def held_out(
-    bundle: Path, test: ShardSet, threads: int = 1, progress=None, precision: str | None = None
-) -> dict:
-    """{fusion, lidar, camera}: metrics of every test person in each forced mode, persons with
-    fewer than min_points in-box points answered by camera lifting (as the server does), read one
+def served_answers(
+    bundle: Path, test: ShardSet, threads: int = 1, progress=None, precision: str | None = None, keys=()
+) -> tuple[dict, dict, PipelineConfig]:
+    """(answers, data, cfg): every test person's answer in each forced mode {fusion, lidar,
+    camera}, persons with fewer than min_points in-box points answered by camera lifting in the
+    point modes (as the server does); `data` holds EVAL_KEYS and `keys` of the test set. Read one
     shard at a time so the test set need not fit in memory."""
     cfg = PipelineConfig.from_dict(json.loads((Path(bundle) / "manifest.json").read_text())["preprocessing"])
     sess = sessions(bundle, threads, precision)
     preds: dict[str, list] = {"fusion": [], "lidar": [], "camera": []}
     kept: list[dict] = []
     for i in range(test.num_shards):
-        d = test.read(i, ("image", *EVAL_KEYS))
+        d = test.read(i, ("image", *EVAL_KEYS, *keys))
         # 32 persons a call: a point net's activations are [persons x N, channels]
         p = predictions(sess, d, cfg, batch=32)
         preds["camera"].append(p["camera"])
@@ -115,8 +116,15 @@ def held_out(
         kept.append(d)
         if progress is not None:
             progress(i + 1, test.num_shards)
-    data = {k: np.concatenate([d[k] for d in kept], axis=0) for k in EVAL_KEYS}
-    pred = {mode: np.concatenate(v, axis=0) for mode, v in preds.items()}
+    data = {k: np.concatenate([d[k] for d in kept], axis=0) for k in kept[0]}
+    return {mode: np.concatenate(v, axis=0) for mode, v in preds.items()}, data, cfg
+
+
+def held_out(
+    bundle: Path, test: ShardSet, threads: int = 1, progress=None, precision: str | None = None
+) -> dict:
+    """{fusion, lidar, camera}: metrics of every test person in each forced mode (served_answers)."""
+    pred, data, cfg = served_answers(bundle, test, threads, progress, precision)
     reports = {mode: evaluate(p, data, cfg) for mode, p in pred.items()}
     for mode in ("fusion", "lidar"):
         reports[mode]["breakdown"]["with_points"] = with_points(pred[mode], data, cfg)
