@@ -29,10 +29,12 @@ ROOT = Path(__file__).resolve().parents[2]
 DEPLOY = ROOT / "deploy"
 # Oldest supported (Indexed Jobs' backoffLimitPerIndex is beta, on by default, since 1.29) and newest.
 K8S_VERSIONS = ["1.29.0", kubernetes_validate.utils.latest_version()]
-# Memory arithmetic (docs/DEPLOY.md, "Memory"). The resident size under load, measured: 239 MB peak
-# at 64 clients, release build, default flags, the default bundle 0.4.0, the system allocator
-# (BENCHMARKS.md, "The system allocator against mimalloc").
-MEASURED_RESIDENT = 239_000_000
+# Memory arithmetic (docs/DEPLOY.md, "Memory"). The resident size under load, measured: 279 MB peak
+# at 64 clients, release build, default flags on two cores (two inference workers, each with its
+# sessions), the default bundle 0.6.0, the system allocator (BENCHMARKS.md, "Two inference workers
+# on two cores"). More workers hold more sessions, so the manifests must state the measured count.
+MEASURED_RESIDENT = 279_000_000
+MEASURED_WORKERS = 2
 # Bytes per pixel of the largest decode: a 16-bit RGBA PNG (8) and its RGB8 copy (3), both alive.
 DECODE_BYTES_PER_PIXEL = 8 + 3
 MIB = 1024 * 1024
@@ -266,6 +268,7 @@ def worst_case_memory(container: dict) -> dict[str, float]:
     waiting = int(env["POSEFUSE_ADMISSION_QUEUE"])
     body = int(env["POSEFUSE_BODY_LIMIT"])
     assert permits > 0 and waiting > 0 and body > 0, "0 would size them from the node's cores"
+    assert env.get("POSEFUSE_WORKERS") == str(MEASURED_WORKERS), "the resident size was measured with these workers"
     # The server keeps a waiting line by default; what its frames hold is not in this arithmetic.
     assert env.get("POSEFUSE_ADMISSION_WAIT_MS") == "0", "the waiting line must be off (stated) here"
     persons = int(

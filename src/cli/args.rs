@@ -41,7 +41,7 @@ pub struct RuntimeArgs {
     /// `--heading-model` bundle keeps its own manifest's.
     #[arg(long, env = "POSEFUSE_PRECISION")]
     pub precision: Option<Precision>,
-    /// Inference worker threads; each owns its own ONNX Runtime sessions (0: one per 4 cores).
+    /// Inference worker threads; each owns its own ONNX Runtime sessions (0: one per 4 cores, at least two on two cores or more).
     #[arg(long, env = "POSEFUSE_WORKERS", default_value_t = 0)]
     pub workers: usize,
     /// ONNX Runtime intra-op threads per session (0: the worker's share of the cores, at most 4).

@@ -235,13 +235,16 @@ pub struct Sizing {
 }
 
 impl Sizing {
-    /// Defaults for `cores` CPU cores: one inference worker per 4 cores (at least 1) with half
-    /// of its share of the cores as intra-op threads (the other half decodes), one decode permit
-    /// per core, a waiting line of 8 per permit, and a short batch wait on machines with more
-    /// than one worker.
+    /// Defaults for `cores` CPU cores: one inference worker per 4 cores, and at least two where
+    /// there are two cores, with half of its share of the cores as intra-op threads (the other
+    /// half decodes), one decode permit per core, a waiting line of 8 per permit, and a short
+    /// batch wait on machines with more than one worker. Two workers on two cores: while one
+    /// runs a batch the other can start the next, so a bundle whose networks cost as much as its
+    /// decoding keeps both cores busy (the default bundle 0.6.0 serves 1.19× the frames/s at 16
+    /// clients, 0.2.0's networks as many; BENCHMARKS.md, "Two inference workers on two cores").
     pub fn for_cores(cores: usize) -> Sizing {
         let cores = cores.max(1);
-        let workers = cores.div_ceil(4).max(1);
+        let workers = cores.div_ceil(4).max(cores.min(2));
         let intra_threads = (cores / workers / 2).clamp(1, 4);
         Sizing {
             cores,
@@ -400,8 +403,14 @@ mod tests {
 
     #[test]
     fn sizing_follows_the_cores() {
+        let one = Sizing::for_cores(1);
+        assert_eq!((one.workers, one.intra_threads, one.decode_permits, one.batch_wait_us), (1, 1, 1, 0));
         let two = Sizing::for_cores(2);
-        assert_eq!((two.workers, two.intra_threads, two.decode_permits), (1, 1, 2));
+        assert_eq!((two.workers, two.intra_threads, two.decode_permits, two.batch_wait_us), (2, 1, 2, 200));
+        let four = Sizing::for_cores(4);
+        assert_eq!((four.workers, four.intra_threads, four.decode_permits), (2, 1, 4));
+        let twelve = Sizing::for_cores(12);
+        assert_eq!((twelve.workers, twelve.intra_threads), (3, 2));
         let sixteen = Sizing::for_cores(16);
         assert_eq!((sixteen.workers, sixteen.intra_threads, sixteen.decode_permits), (4, 2, 16));
         assert_eq!(Sizing::for_cores(0).cores, 1);
