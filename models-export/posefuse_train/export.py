@@ -254,11 +254,18 @@ def main(argv=None):
         default=0.0,
         help="keep the box frame where the facing net agrees with it within this many degrees (0: never)",
     )
-    p.add_argument(
+    flip = p.add_mutually_exclusive_group()
+    flip.add_argument(
         "--flip-test",
         action="store_true",
         help="export the camera net with its mirror pass inside the graph (docs/TRAINING.md, 'Flip test'); "
         "a camera checkpoint trained with flip_test gets it without the flag",
+    )
+    flip.add_argument(
+        "--no-flip-test",
+        action="store_true",
+        help="export a camera net trained with flip_test without its mirror pass: half the camera's cost, "
+        "for what the mirror pass adds (docs/TRAINING.md, 'Flip test')",
     )
     p.add_argument(
         "--blend",
@@ -288,7 +295,7 @@ def main(argv=None):
         camera = camera_from_checkpoint(cam_ckpt)
         # Checkpoints from before the trainer recorded its config have none.
         trained_with_flip = (cam_ckpt.get("train_config") or {}).get("flip_test", False)
-        camera = as_served(camera, a.flip_test or trained_with_flip)
+        camera = as_served(camera, (a.flip_test or trained_with_flip) and not a.no_flip_test)
         fusion, lidar = point_from_checkpoint(fus_ckpt), point_from_checkpoint(lid_ckpt)
         training = {
             "data": cam_ckpt.get("data"),

@@ -200,6 +200,8 @@ def checkpoint_args(tmp_path, camera_train_config=None) -> list[str]:
         (None, ["--flip-test"], True),
         ({"flip_test": True}, [], True),
         ({"flip_test": False}, [], False),
+        ({"flip_test": True}, ["--no-flip-test"], False),
+        (None, ["--no-flip-test"], False),
     ],
 )
 def test_the_cli_exports_the_flip_test_from_the_flag_or_the_checkpoint(tmp_path, train_config, flag, want):
@@ -208,6 +210,15 @@ def test_the_cli_exports_the_flip_test_from_the_flag_or_the_checkpoint(tmp_path,
     main([*checkpoint_args(tmp_path, train_config), *flag, "--out", str(tmp_path / "b")])
     manifest = json.loads((tmp_path / "b" / "manifest.json").read_text())
     assert manifest["models"]["camera"].get("flip_test", False) is want
+
+
+def test_the_flip_test_cannot_be_asked_for_and_refused_at_once(tmp_path):
+    from posefuse_train.export import main
+
+    both = ["--flip-test", "--no-flip-test"]
+    with pytest.raises(SystemExit):
+        main([*checkpoint_args(tmp_path, None), *both, "--out", str(tmp_path / "b")])
+    assert not (tmp_path / "b").exists()
 
 
 @pytest.mark.parametrize("blend", [False, True])
