@@ -60,8 +60,9 @@ def lead(a: np.ndarray, b: np.ndarray) -> dict:
     return {"oks_acc_3d": float(d.mean()) if len(d) else None, "se": se}
 
 
-def bundle_table(bundle: Path, test: str, bands, threads: int) -> list[dict]:
-    pred, data, cfg = bundle_eval.served_answers(bundle, ShardSet(test), threads, keys=("range_m",))
+def per_band(data: dict, preds: dict, cfg, bands) -> list[dict]:
+    """One row per range band with persons: each answer's OKS@3D, MPJPE and wrists there, and
+    where both a fusion and a LiDAR-only answer are given, the fusion one's paired lead."""
     table = []
     for lo, hi in bands:
         sel = np.flatnonzero((data["range_m"] >= lo) & (data["range_m"] < hi))
@@ -70,20 +71,26 @@ def bundle_table(bundle: Path, test: str, bands, threads: int) -> list[dict]:
         sub = data_mod.subset(data, sel)
         cells = {"range_m": f"{lo:g}-{hi:g}", "persons": int(len(sel))}
         cells["mean_points"] = float(sub["points_count"].mean())
-        for mode, p in pred.items():
+        for name, p in preds.items():
             m = evaluate.evaluate(p[sel], sub, cfg)
-            cells[mode] = {
+            cells[name] = {
                 "oks_acc_3d": m["oks_acc_3d"],
                 "mpjpe_3d_m": m["mpjpe_3d_m"],
                 "wrist": part_oks(m, "wrist"),
             }
-        cells["fusion_lead"] = lead(
-            person_oks_acc(pred["fusion"][sel], sub), person_oks_acc(pred["lidar"][sel], sub)
-        )
-        f, li = cells["fusion"]["wrist"], cells["lidar"]["wrist"]
-        cells["fusion_lead"]["wrist"] = f - li if f is not None and li is not None else None
+        if {"fusion", "lidar"} <= preds.keys():
+            cells["fusion_lead"] = lead(
+                person_oks_acc(preds["fusion"][sel], sub), person_oks_acc(preds["lidar"][sel], sub)
+            )
+            f, li = cells["fusion"]["wrist"], cells["lidar"]["wrist"]
+            cells["fusion_lead"]["wrist"] = f - li if f is not None and li is not None else None
         table.append(cells)
     return table
+
+
+def bundle_table(bundle: Path, test: str, bands, threads: int) -> list[dict]:
+    pred, data, cfg = bundle_eval.served_answers(bundle, ShardSet(test), threads, keys=("range_m",))
+    return per_band(data, pred, cfg, bands)
 
 
 def print_bundle_table(table: list[dict]) -> None:
@@ -130,18 +137,7 @@ def main(argv=None):
 def run_table(run: Path, test_dir: str, rows: list[str], bands) -> list[dict]:
     test, cfg, _ = data_mod.load(test_dir)
     preds = run_predictions(run, rows, test, cfg)
-    table = []
-    for lo, hi in bands:
-        sel = np.flatnonzero((test["range_m"] >= lo) & (test["range_m"] < hi))
-        if not len(sel):
-            continue
-        sub = data_mod.subset(test, sel)
-        cells = {"range_m": f"{lo:g}-{hi:g}", "persons": int(len(sel))}
-        cells["mean_points"] = float(sub["points_count"].mean())
-        for row, pred in preds.items():
-            m = evaluate.evaluate(pred[sel], sub, cfg)
-            cells[row] = {"oks_acc_3d": m["oks_acc_3d"], "mpjpe_3d_m": m["mpjpe_3d_m"]}
-        table.append(cells)
+    table = per_band(test, preds, cfg, bands)
     header = ["range (m)", "persons", "in-box points", *[f"{r} OKS@3D / MPJPE" for r in preds]]
     print("| " + " | ".join(header) + " |")
     print("|" + "---|" * len(header))
