@@ -645,6 +645,26 @@ fn mb(kb: u64) -> f64 {
     kb as f64 / 1024.0
 }
 
+/// One step's row of the printed table: the numbers of its report, set beside the raw reference.
+fn table_row(s: &StepReport, raw: Option<&Raw>) -> String {
+    let statuses: Vec<String> = s.statuses.iter().map(|(k, v)| format!("{k}: {v}")).collect();
+    let ratio = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.2}"));
+    format!(
+        "| {:?} | {} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {} | {} | {} | {} |",
+        s.form,
+        s.clients,
+        s.clients_answered,
+        s.frames_per_s,
+        s.persons_per_s,
+        ms(s.p50),
+        ms(s.p99),
+        ratio(raw.map(|r| ms(s.p50) / ms(r.frame_p50))),
+        ratio(raw.map(|r| s.persons_per_s / r.persons_per_s)),
+        statuses.join(", "),
+        s.peak_rss_mb.map_or("–".to_string(), |mb| format!("{mb:.0}")),
+    )
+}
+
 /// Runs `posefuse bench`: prints its table and returns what it measured.
 pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport> {
     let mut frames: Vec<Frame> =
@@ -737,35 +757,21 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
                 bail!("{form:?} at {clients} clients: no request was answered with 200 ({:?})", s.statuses);
             }
             let secs = s.wall.as_secs_f64();
-            let (p50, p99) = (percentile(&s.latencies, 0.5), percentile(&s.latencies, 0.99));
-            let statuses: Vec<String> = s.statuses.iter().map(|(k, v)| format!("{k}: {v}")).collect();
-            let ratio = |v: Option<f64>| v.map_or("–".to_string(), |v| format!("{v:.2}"));
-            println!(
-                "| {form:?} | {} | {} | {:.1} | {:.1} | {:.2} | {:.2} | {} | {} | {} | {} |",
-                s.clients,
-                s.clients_answered,
-                s.latencies.len() as f64 / secs,
-                s.persons as f64 / secs,
-                ms(p50),
-                ms(p99),
-                ratio(raw.as_ref().map(|r| ms(p50) / ms(r.frame_p50))),
-                ratio(raw.as_ref().map(|r| s.persons as f64 / secs / r.persons_per_s)),
-                statuses.join(", "),
-                s.peak_rss_kb.map_or("–".to_string(), |kb| format!("{:.0}", mb(kb))),
-            );
-            report.steps.push(StepReport {
+            let step = StepReport {
                 form,
                 clients: s.clients,
                 answered: s.latencies.len(),
                 persons: s.persons,
                 frames_per_s: s.latencies.len() as f64 / secs,
                 persons_per_s: s.persons as f64 / secs,
-                p50,
-                p99,
-                statuses: s.statuses.clone(),
+                p50: percentile(&s.latencies, 0.5),
+                p99: percentile(&s.latencies, 0.99),
+                statuses: s.statuses,
                 clients_answered: s.clients_answered,
                 peak_rss_mb: s.peak_rss_kb.map(mb),
-            });
+            };
+            println!("{}", table_row(&step, raw.as_ref()));
+            report.steps.push(step);
         }
         if form == ImageForm::RgbShm {
             rt.block_on(shared_memory::unregister(&url, &objects))?;
@@ -786,6 +792,38 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_table_row_shows_the_steps_numbers_beside_the_raw_reference() {
+        let step = StepReport {
+            form: ImageForm::Jpeg420,
+            clients: 16,
+            clients_answered: 15,
+            answered: 900,
+            persons: 1800,
+            frames_per_s: 150.04,
+            persons_per_s: 300.0,
+            p50: Duration::from_micros(12_345),
+            p99: Duration::from_micros(40_000),
+            statuses: [("200".to_string(), 900), ("429".to_string(), 3)].into(),
+            peak_rss_mb: Some(211.6),
+        };
+        let raw = Raw {
+            frame_p50: Duration::from_micros(5_000),
+            frames_timed: 100,
+            timed: Duration::from_secs(1),
+            persons_per_s: 400.0,
+        };
+        assert_eq!(
+            table_row(&step, Some(&raw)),
+            "| Jpeg420 | 16 | 15 | 150.0 | 300.0 | 12.35 | 40.00 | 2.47 | 0.75 | 200: 900, 429: 3 | 212 |"
+        );
+        let no_raw = StepReport { peak_rss_mb: None, ..step };
+        assert_eq!(
+            table_row(&no_raw, None),
+            "| Jpeg420 | 16 | 15 | 150.0 | 300.0 | 12.35 | 40.00 | – | – | 200: 900, 429: 3 | – |"
+        );
+    }
 
     #[test]
     fn the_raw_reference_times_three_rounds_then_until_it_has_enough() {
