@@ -645,6 +645,25 @@ fn mb(kb: u64) -> f64 {
     kb as f64 / 1024.0
 }
 
+/// What a step measured, as reported: rates over its wall time, p50 and p99 of the answered
+/// requests' latencies (sorted by `run_step`).
+fn step_report(form: ImageForm, s: Step) -> StepReport {
+    let secs = s.wall.as_secs_f64();
+    StepReport {
+        form,
+        clients: s.clients,
+        answered: s.latencies.len(),
+        persons: s.persons,
+        frames_per_s: s.latencies.len() as f64 / secs,
+        persons_per_s: s.persons as f64 / secs,
+        p50: percentile(&s.latencies, 0.5),
+        p99: percentile(&s.latencies, 0.99),
+        statuses: s.statuses,
+        clients_answered: s.clients_answered,
+        peak_rss_mb: s.peak_rss_kb.map(mb),
+    }
+}
+
 /// One step's row of the printed table: the numbers of its report, set beside the raw reference.
 fn table_row(s: &StepReport, raw: Option<&Raw>) -> String {
     let statuses: Vec<String> = s.statuses.iter().map(|(k, v)| format!("{k}: {v}")).collect();
@@ -756,20 +775,7 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
             if s.latencies.is_empty() {
                 bail!("{form:?} at {clients} clients: no request was answered with 200 ({:?})", s.statuses);
             }
-            let secs = s.wall.as_secs_f64();
-            let step = StepReport {
-                form,
-                clients: s.clients,
-                answered: s.latencies.len(),
-                persons: s.persons,
-                frames_per_s: s.latencies.len() as f64 / secs,
-                persons_per_s: s.persons as f64 / secs,
-                p50: percentile(&s.latencies, 0.5),
-                p99: percentile(&s.latencies, 0.99),
-                statuses: s.statuses,
-                clients_answered: s.clients_answered,
-                peak_rss_mb: s.peak_rss_kb.map(mb),
-            };
+            let step = step_report(form, s);
             println!("{}", table_row(&step, raw.as_ref()));
             report.steps.push(step);
         }
@@ -792,6 +798,26 @@ pub fn run_bench(args: BenchOptions) -> posefuse_data::error::Result<BenchReport
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn a_step_is_reported_as_rates_over_its_wall_time() {
+        let ms = Duration::from_millis;
+        let step = Step {
+            clients: 4,
+            wall: Duration::from_secs(2),
+            latencies: vec![ms(10), ms(20), ms(30), ms(40), ms(90)],
+            persons: 8,
+            statuses: [("200".to_string(), 5), ("429".to_string(), 2)].into(),
+            peak_rss_kb: Some(3 * 1024),
+            clients_answered: 3,
+        };
+        let r = step_report(ImageForm::Rgb, step);
+        assert_eq!((r.form, r.clients, r.clients_answered, r.answered, r.persons), (ImageForm::Rgb, 4, 3, 5, 8));
+        assert_eq!((r.frames_per_s, r.persons_per_s), (2.5, 4.0));
+        assert_eq!((r.p50, r.p99), (ms(30), ms(90)));
+        assert_eq!(r.statuses["429"], 2);
+        assert_eq!(r.peak_rss_mb, Some(3.0));
+    }
 
     #[test]
     fn a_table_row_shows_the_steps_numbers_beside_the_raw_reference() {
